@@ -1,0 +1,394 @@
+//! Job files: what to render and how. Config flows once (STYLE.md §3): the JSON file is
+//! deserialised with unknown keys rejected ([`JobFile`]), command-line overrides are applied
+//! in one place ([`Overrides`]), and the result is a validated, immutable [`Job`].
+//!
+//! The schema is published in `schemas/job.schema.json`; README.md documents every key and
+//! its default.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::{EulerRot, Mat4, Quat, Vec3};
+use serde::Deserialize;
+
+use crate::error::{Error, Result};
+use crate::scene::Motion;
+
+/// The job file as written on disk.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobFile {
+    /// glTF layers composed into one scene, like USD references. At least one.
+    pub scene: Vec<LayerFile>,
+    /// Camera: a glTF camera node by name, or one given here. Default: the first glTF camera.
+    #[serde(default)]
+    pub camera: Option<CameraFile>,
+    /// Image size in pixels, `[width, height]`. Default `[640, 360]`.
+    #[serde(default = "default_resolution")]
+    pub resolution: [u32; 2],
+    /// Inclusive frame range. Default: frame 0 only.
+    #[serde(default)]
+    pub frames: Option<FrameRange>,
+    /// Frames per second for frame ↔ time mapping. Default 24.
+    #[serde(default = "default_fps")]
+    pub fps: f64,
+    /// The frame number at animation time 0 (Blender's exporter writes time 0 at its scene's
+    /// start frame, usually 1). Default 0: frame `f` is at time `f / fps`.
+    #[serde(default)]
+    pub frame_offset: f64,
+    /// Where frames go. Default: directory `render` beside the job file, name = job file stem.
+    #[serde(default)]
+    pub output: Option<OutputFile>,
+    /// Seed of every random number. Default 0.
+    #[serde(default)]
+    pub seed: u32,
+    /// Sampling settings.
+    #[serde(default)]
+    pub render: RenderSettings,
+    /// Method settings (the global-illumination method and its parameters).
+    #[serde(default)]
+    pub method: MethodSettings,
+}
+
+fn default_resolution() -> [u32; 2] {
+    [640, 360]
+}
+fn default_fps() -> f64 {
+    24.0
+}
+
+/// One glTF file in the composition.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LayerFile {
+    /// Path of the `.gltf` or `.glb`, relative to the job file.
+    pub path: PathBuf,
+    /// Transform applied to the whole layer (cameras and lights included).
+    #[serde(default)]
+    pub transform: TransformFile,
+    /// Motion tags by node name; they win over tags in the file.
+    #[serde(default)]
+    pub tags: BTreeMap<String, Motion>,
+}
+
+/// A layer transform: scale, then rotation, then translation.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransformFile {
+    #[serde(default)]
+    pub translation: Option<[f32; 3]>,
+    /// Rotation as XYZ Euler angles in degrees.
+    #[serde(default)]
+    pub rotation_deg: Option<[f32; 3]>,
+    /// Uniform scale (a number) or per-axis scale (three numbers).
+    #[serde(default)]
+    pub scale: Option<Scale>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(untagged)]
+pub enum Scale {
+    Uniform(f32),
+    Axes([f32; 3]),
+}
+
+impl TransformFile {
+    pub fn matrix(&self) -> Mat4 {
+        let t = self.translation.map(Vec3::from).unwrap_or(Vec3::ZERO);
+        let r = self
+            .rotation_deg
+            .map(|[x, y, z]| {
+                Quat::from_euler(
+                    EulerRot::XYZ,
+                    x.to_radians(),
+                    y.to_radians(),
+                    z.to_radians(),
+                )
+            })
+            .unwrap_or(Quat::IDENTITY);
+        let s = match self.scale {
+            None => Vec3::ONE,
+            Some(Scale::Uniform(s)) => Vec3::splat(s),
+            Some(Scale::Axes(a)) => Vec3::from(a),
+        };
+        Mat4::from_scale_rotation_translation(s, r, t)
+    }
+}
+
+/// Camera given in the job file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, untagged)]
+pub enum CameraFile {
+    /// A glTF camera node by name (searched in layer order).
+    Node { node: String },
+    /// A pinhole camera.
+    LookAt {
+        position: [f32; 3],
+        look_at: [f32; 3],
+        #[serde(default = "default_up")]
+        up: [f32; 3],
+        /// Vertical field of view in degrees.
+        yfov_deg: f32,
+    },
+}
+
+fn default_up() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameRange {
+    pub start: i32,
+    pub end: i32,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputFile {
+    /// Output directory, relative to the job file. Default `render`.
+    #[serde(default)]
+    pub directory: Option<PathBuf>,
+    /// File name stem: frames are `NAME.####.exr`. Default: the job file's stem.
+    #[serde(default)]
+    pub name: Option<String>,
+}
+
+/// Sampling settings ([`RenderSettings::default`] gives the defaults).
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderSettings {
+    /// Camera samples per pixel (box filter over the pixel). Default 16.
+    pub samples_per_pixel: u32,
+    /// Samples of the emissive-triangle lights per camera sample. Default 1.
+    pub light_samples: u32,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings {
+            samples_per_pixel: 16,
+            light_samples: 1,
+        }
+    }
+}
+
+/// The global-illumination method. Only direct lighting exists so far; the photon-mapping
+/// methods of the paper (`anchors`, `brute-force`, `precomputed`, `path-trace`) add their
+/// names and parameters here.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// Emission and direct lighting only; no indirect light.
+    #[default]
+    Direct,
+}
+
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MethodSettings {
+    pub name: Method,
+}
+
+/// Command-line overrides, applied to the job file in one place ([`Job::load`]).
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    pub frames: Option<FrameRange>,
+    pub out_dir: Option<PathBuf>,
+}
+
+/// A validated job: paths resolved, ranges checked.
+#[derive(Debug, Clone)]
+pub struct Job {
+    pub path: PathBuf,
+    pub layers: Vec<Layer>,
+    pub camera: Option<CameraFile>,
+    pub width: u32,
+    pub height: u32,
+    pub frames: FrameRange,
+    pub fps: f64,
+    pub frame_offset: f64,
+    pub out_dir: PathBuf,
+    pub name: String,
+    pub seed: u32,
+    pub render: RenderSettings,
+    pub method: MethodSettings,
+}
+
+#[derive(Debug, Clone)]
+pub struct Layer {
+    pub path: PathBuf,
+    pub transform: Mat4,
+    pub tags: BTreeMap<String, Motion>,
+}
+
+impl Job {
+    /// Reads, validates and applies `overrides` to the job file at `path`.
+    pub fn load(path: &Path, overrides: &Overrides) -> Result<Job> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| Error::input(path, "file", format!("cannot read job file: {e}")))?;
+        let file: JobFile = serde_json::from_str(&text).map_err(|e| json_error(path, &text, &e))?;
+        Job::from_file(path, file, overrides)
+    }
+
+    /// Validates an already-parsed job file; `path` locates relative paths and names errors.
+    pub fn from_file(path: &Path, file: JobFile, overrides: &Overrides) -> Result<Job> {
+        let base = path.parent().unwrap_or(Path::new("."));
+        if file.scene.is_empty() {
+            return Err(Error::input(
+                path,
+                "scene",
+                "at least one scene layer is required",
+            ));
+        }
+        let [width, height] = file.resolution;
+        if width == 0 || height == 0 || width > 16384 || height > 16384 {
+            return Err(Error::input(
+                path,
+                "resolution",
+                format!("must be 1..=16384 pixels each, got {width}x{height}"),
+            ));
+        }
+        if !(file.fps.is_finite() && file.fps > 0.0) {
+            return Err(Error::input(
+                path,
+                "fps",
+                format!("must be > 0, got {}", file.fps),
+            ));
+        }
+        if !file.frame_offset.is_finite() {
+            return Err(Error::input(path, "frame_offset", "must be finite"));
+        }
+        let frames = overrides
+            .frames
+            .or(file.frames)
+            .unwrap_or(FrameRange { start: 0, end: 0 });
+        if frames.end < frames.start {
+            return Err(Error::input(
+                path,
+                "frames",
+                format!("end {} is before start {}", frames.end, frames.start),
+            ));
+        }
+        let rs = file.render;
+        if rs.samples_per_pixel == 0 || rs.samples_per_pixel > 65536 {
+            return Err(Error::input(
+                path,
+                "render.samples_per_pixel",
+                "must be 1..=65536",
+            ));
+        }
+        if rs.light_samples == 0 || rs.light_samples > 1024 {
+            return Err(Error::input(
+                path,
+                "render.light_samples",
+                "must be 1..=1024",
+            ));
+        }
+        let mut layers = Vec::new();
+        for (i, l) in file.scene.iter().enumerate() {
+            let m = l.transform.matrix();
+            if !m.is_finite() || m.determinant().abs() < 1e-30 {
+                return Err(Error::input(
+                    path,
+                    format!("scene[{i}].transform"),
+                    "must be finite and invertible",
+                ));
+            }
+            layers.push(Layer {
+                path: base.join(&l.path),
+                transform: m,
+                tags: l.tags.clone(),
+            });
+        }
+        if let Some(CameraFile::LookAt {
+            position,
+            look_at,
+            up,
+            yfov_deg,
+        }) = &file.camera
+        {
+            let (p, a, u) = (Vec3::from(*position), Vec3::from(*look_at), Vec3::from(*up));
+            if !(p.is_finite() && a.is_finite() && u.is_finite()) || (a - p).length() == 0.0 {
+                return Err(Error::input(
+                    path,
+                    "camera",
+                    "position and look_at must differ",
+                ));
+            }
+            if (a - p).normalize().cross(u.normalize_or_zero()).length() < 1e-6 {
+                return Err(Error::input(
+                    path,
+                    "camera.up",
+                    "must not be parallel to the view",
+                ));
+            }
+            if !(*yfov_deg > 0.0 && *yfov_deg < 180.0) {
+                return Err(Error::input(path, "camera.yfov_deg", "must be in (0, 180)"));
+            }
+        }
+        let out = file.output.clone().unwrap_or(OutputFile {
+            directory: None,
+            name: None,
+        });
+        let out_dir = match &overrides.out_dir {
+            Some(d) => d.clone(),
+            None => base.join(out.directory.unwrap_or_else(|| PathBuf::from("render"))),
+        };
+        let name = match out.name {
+            Some(n) => n,
+            None => path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "frame".into()),
+        };
+        if name.is_empty() || name.contains(['/', '\\']) {
+            return Err(Error::input(
+                path,
+                "output.name",
+                "must be a plain file name",
+            ));
+        }
+        Ok(Job {
+            path: path.to_path_buf(),
+            layers,
+            camera: file.camera,
+            width,
+            height,
+            frames,
+            fps: file.fps,
+            frame_offset: file.frame_offset,
+            out_dir,
+            name,
+            seed: file.seed,
+            render: rs,
+            method: file.method,
+        })
+    }
+
+    /// Animation time in seconds of `frame`.
+    pub fn time_of(&self, frame: i32) -> f32 {
+        ((frame as f64 - self.frame_offset) / self.fps) as f32
+    }
+
+    /// Path of a frame's EXR; its stats and preview share the stem.
+    pub fn frame_path(&self, frame: i32, ext: &str) -> PathBuf {
+        self.out_dir
+            .join(format!("{}.{:04}.{ext}", self.name, frame))
+    }
+}
+
+/// A JSON error with the key path where serde stopped and the offending line (Tungsten-style).
+fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> Error {
+    let line = e.line();
+    let excerpt = text
+        .lines()
+        .nth(line.saturating_sub(1))
+        .map(|l| l.trim())
+        .unwrap_or("");
+    Error::input(
+        path,
+        format!("line {line}, column {}", e.column()),
+        format!("{e}\n    {excerpt}"),
+    )
+}

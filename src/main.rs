@@ -1,0 +1,170 @@
+//! The `anchorage` command line: parses arguments, calls the library, and turns its typed
+//! errors into messages and exit codes (0 success, 2 bad input, 1 render failure).
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anchorage::job::{FrameRange, Job, Overrides};
+use anchorage::pipeline::{self, Progress, RenderOptions};
+use anchorage::scene::Scene;
+use anchorage::{Error, inspect};
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "anchorage",
+    version,
+    about = "Batch renderer for animation: multilayer EXR per frame"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render every frame of a job to NAME.####.exr (+ stats JSON, optional PNG preview).
+    Render {
+        job: PathBuf,
+        /// Inclusive frame range `A-B` (or one frame `A`), overriding the job's `frames`.
+        #[arg(long)]
+        frames: Option<String>,
+        /// Output directory, overriding the job's `output.directory`.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Worker threads (default: all cores). The output does not depend on it.
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Also write a tone-mapped sRGB PNG per frame.
+        #[arg(long)]
+        preview: bool,
+        /// No progress output.
+        #[arg(long, short)]
+        quiet: bool,
+    },
+    /// Describe a scene (.gltf/.glb) or a job: prims with tags and why, lights, cameras, time range.
+    Inspect { path: PathBuf },
+    /// Check a job and its scenes without rendering.
+    Validate { job: PathBuf },
+}
+
+fn parse_frames(s: &str) -> Result<FrameRange, Error> {
+    let bad = || Error::input("--frames", s, "expected A-B or A (integers, A <= B)");
+    // The separator is the first '-' that follows a digit, so negative frames work: -5--2.
+    let sep = s
+        .char_indices()
+        .skip(1)
+        .find(|&(i, c)| c == '-' && s.as_bytes()[i - 1].is_ascii_digit());
+    let (a, b) = match sep {
+        Some((i, _)) => (&s[..i], &s[i + 1..]),
+        None => (s, s),
+    };
+    let start: i32 = a.trim().parse().map_err(|_| bad())?;
+    let end: i32 = b.trim().parse().map_err(|_| bad())?;
+    if end < start {
+        return Err(bad());
+    }
+    Ok(FrameRange { start, end })
+}
+
+/// A job wrapping a bare scene file, for `inspect SCENE.gltf`.
+fn job_for_scene(path: &Path) -> Result<Job, Error> {
+    let file = anchorage::job::JobFile {
+        scene: vec![anchorage::job::LayerFile {
+            path: PathBuf::from(path.file_name().unwrap_or_default()),
+            transform: Default::default(),
+            tags: Default::default(),
+        }],
+        camera: None,
+        resolution: [640, 360],
+        frames: None,
+        fps: 24.0,
+        frame_offset: 0.0,
+        output: None,
+        seed: 0,
+        render: Default::default(),
+        method: Default::default(),
+    };
+    Job::from_file(path, file, &Overrides::default())
+}
+
+fn run(cli: Cli) -> Result<(), Error> {
+    match cli.command {
+        Command::Render {
+            job,
+            frames,
+            out,
+            threads,
+            preview,
+            quiet,
+        } => {
+            let overrides = Overrides {
+                frames: frames.as_deref().map(parse_frames).transpose()?,
+                out_dir: out,
+            };
+            if let Some(n) = threads {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n.max(1))
+                    .build_global()
+                    .map_err(|e| Error::Render(e.to_string()))?;
+            }
+            let job = Job::load(&job, &overrides)?;
+            let scene = Scene::load(&job)?;
+            for w in scene.warnings() {
+                eprintln!("anchorage: warning: {w}");
+            }
+            let opts = RenderOptions {
+                preview,
+                progress: if quiet {
+                    Progress::Quiet
+                } else {
+                    Progress::Auto
+                },
+            };
+            pipeline::render_job(&job, &scene, opts)?;
+            Ok(())
+        }
+        Command::Inspect { path } => {
+            let is_job = path
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("json"));
+            let job = if is_job {
+                Job::load(&path, &Overrides::default())?
+            } else {
+                job_for_scene(&path)?
+            };
+            let scene = Scene::load_layers(&job)?;
+            print!("{}", inspect::report(&job, &scene));
+            Ok(())
+        }
+        Command::Validate { job } => {
+            let job = Job::load(&job, &Overrides::default())?;
+            let scene = Scene::load(&job)?;
+            for w in scene.warnings() {
+                eprintln!("anchorage: warning: {w}");
+            }
+            anchorage::output::check_output_dir(&job.out_dir)?;
+            println!(
+                "{}: ok: {} layer(s), frames {}..{}, {}x{}",
+                job.path.display(),
+                job.layers.len(),
+                job.frames.start,
+                job.frames.end,
+                job.width,
+                job.height
+            );
+            Ok(())
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("anchorage: error: {e}");
+            ExitCode::from(e.exit_code() as u8)
+        }
+    }
+}

@@ -1,0 +1,199 @@
+//! The render loop over a job's frames (DESIGN.md, Data flow): evaluate the scene at the
+//! frame's time, build the dynamic BVH, shade, write the AOVs and the stats. The static set
+//! and its BVH are built once, before the first frame.
+
+use std::io::IsTerminal;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::error::Result;
+use crate::job::{Job, Method};
+use crate::output;
+use crate::render::{self, FrameImage, Materials};
+use crate::scene::{Scene, StaticSet};
+
+/// Per-stage wall-clock seconds (`schemas/stats.schema.json`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Timings {
+    /// Evaluating animation, skinning and morphing of dynamic prims.
+    pub scene_evaluation: f64,
+    /// Evaluating static prims and building their BVH (first frame of a render only).
+    pub static_bvh: f64,
+    pub dynamic_bvh: f64,
+    pub direct_lighting: f64,
+    pub output: f64,
+    pub total: f64,
+}
+
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Counts {
+    pub triangles_static: u64,
+    pub triangles_dynamic: u64,
+    pub punctual_lights: u64,
+    pub emissive_triangles: u64,
+    pub pixels: u64,
+    pub camera_rays: u64,
+    pub shadow_rays: u64,
+}
+
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Memory {
+    pub geometry_static_bytes: u64,
+    pub geometry_dynamic_bytes: u64,
+    pub bvh_static_bytes: u64,
+    pub bvh_dynamic_bytes: u64,
+    pub image_bytes: u64,
+}
+
+/// The stats JSON written beside each frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameStats {
+    pub frame: i32,
+    /// Animation time of the frame in seconds.
+    pub time: f32,
+    pub method: &'static str,
+    pub resolution: [u32; 2],
+    pub samples_per_pixel: u32,
+    pub timings_s: Timings,
+    pub counts: Counts,
+    pub memory: Memory,
+}
+
+/// How frames are reported while rendering.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Progress {
+    /// A progress bar when stderr is a terminal, else one log line per frame (farm logs).
+    Auto,
+    Quiet,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub struct RenderOptions {
+    pub preview: bool,
+    pub progress: Progress,
+}
+
+/// Renders one frame in memory: the AOVs and the stats (no files written).
+pub fn render_frame(
+    job: &Job,
+    scene: &Scene,
+    statics: &StaticSet,
+    frame: i32,
+    stats: &mut FrameStats,
+) -> FrameImage {
+    let t = job.time_of(frame);
+    let start = Instant::now();
+    let dynamic = scene.geometry(t, crate::scene::Motion::Dynamic);
+    stats.timings_s.scene_evaluation = start.elapsed().as_secs_f64();
+    let start = Instant::now();
+    let fs = crate::scene::FrameScene::new(
+        statics,
+        dynamic,
+        scene.lights(t),
+        scene.camera_at(t, job.width as f32 / job.height as f32),
+        &scene.materials,
+    );
+    stats.timings_s.dynamic_bvh = start.elapsed().as_secs_f64();
+    let m = Materials {
+        materials: &scene.materials,
+        textures: &scene.textures,
+    };
+    let start = Instant::now();
+    let (img, rc) = match job.method.name {
+        Method::Direct => {
+            render::render_direct(&fs, m, &job.render, job.width, job.height, job.seed, frame)
+        }
+    };
+    stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
+    let c = &mut stats.counts;
+    c.triangles_static = fs.static_geometry.len() as u64;
+    c.triangles_dynamic = fs.dynamic_geometry.len() as u64;
+    c.punctual_lights = fs.lights.len() as u64;
+    c.emissive_triangles = fs.emitters.list.len() as u64;
+    c.pixels = job.width as u64 * job.height as u64;
+    c.camera_rays = rc.camera_rays;
+    c.shadow_rays = rc.shadow_rays;
+    let mem = &mut stats.memory;
+    mem.geometry_static_bytes = fs.static_geometry.bytes() as u64;
+    mem.geometry_dynamic_bytes = fs.dynamic_geometry.bytes() as u64;
+    mem.bvh_static_bytes = statics.bvh.bytes() as u64;
+    mem.bvh_dynamic_bytes = fs.accel.dynamic_bytes() as u64;
+    mem.image_bytes = c.pixels * 8 * 4;
+    img
+}
+
+fn new_stats(job: &Job, frame: i32) -> FrameStats {
+    FrameStats {
+        frame,
+        time: job.time_of(frame),
+        method: match job.method.name {
+            Method::Direct => "direct",
+        },
+        resolution: [job.width, job.height],
+        samples_per_pixel: job.render.samples_per_pixel,
+        timings_s: Timings::default(),
+        counts: Counts::default(),
+        memory: Memory::default(),
+    }
+}
+
+/// Renders every frame of the job and writes EXR, stats JSON and (optionally) PNG per frame.
+/// The output directory is checked before the first frame renders.
+pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
+    output::check_output_dir(&job.out_dir)?;
+    let start = Instant::now();
+    let statics = scene.statics();
+    let static_time = start.elapsed().as_secs_f64();
+    let frames: Vec<i32> = (job.frames.start..=job.frames.end).collect();
+    let bar = (opts.progress == Progress::Auto && std::io::stderr().is_terminal()).then(|| {
+        let b = indicatif::ProgressBar::new(frames.len() as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} frames, eta {eta} {msg}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        b
+    });
+    let mut all = Vec::new();
+    for (i, &frame) in frames.iter().enumerate() {
+        let t0 = Instant::now();
+        let mut stats = new_stats(job, frame);
+        if i == 0 {
+            stats.timings_s.static_bvh = static_time;
+        }
+        let img = render_frame(job, scene, &statics, frame, &mut stats);
+        let t_out = Instant::now();
+        let exr = job.frame_path(frame, "exr");
+        output::write_exr(&exr, &img)?;
+        if opts.preview {
+            output::write_png(&job.frame_path(frame, "png"), &img)?;
+        }
+        stats.timings_s.output = t_out.elapsed().as_secs_f64();
+        stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;
+        output::write_json(&job.frame_path(frame, "json"), &stats)?;
+        match &bar {
+            Some(b) => {
+                b.set_message(format!("frame {frame}: {:.2} s", stats.timings_s.total));
+                b.inc(1);
+            }
+            None if opts.progress == Progress::Auto => eprintln!(
+                "anchorage: frame {frame} ({}/{}) {:.2} s, {} camera rays, {} shadow rays -> {}",
+                i + 1,
+                frames.len(),
+                stats.timings_s.total,
+                stats.counts.camera_rays,
+                stats.counts.shadow_rays,
+                exr.display()
+            ),
+            None => {}
+        }
+        all.push(stats);
+    }
+    if let Some(b) = bar {
+        b.finish();
+    }
+    Ok(all)
+}

@@ -1,0 +1,373 @@
+//! The immutable, render-ready scene at one time (STYLE.md §2, Tungsten's
+//! `TraceableScene`): world-space triangles split into static and dynamic sets with their
+//! BVHs, punctual lights, emissive triangles ready for sampling, and the camera.
+
+use std::sync::Arc;
+
+use glam::{Mat3, Mat4, Vec2, Vec3, Vec3A};
+use obvhs::triangle::Triangle;
+
+use super::{Light, LightKind, Material, Motion, Primitive, Projection};
+use crate::accel::{Accel, StaticBvh};
+
+/// Static geometry and its BVH: evaluated and built once per render, shared by every frame.
+#[derive(Clone)]
+pub struct StaticSet {
+    pub geometry: Arc<Geometry>,
+    pub bvh: Arc<StaticBvh>,
+}
+
+impl StaticSet {
+    pub fn new(geometry: Geometry) -> Self {
+        let bvh = Arc::new(StaticBvh::build(&geometry));
+        StaticSet {
+            geometry: Arc::new(geometry),
+            bvh,
+        }
+    }
+}
+
+/// Per-triangle shading data, parallel to [`Geometry::triangles`].
+#[derive(Debug, Clone, Copy)]
+pub struct TriangleShading {
+    /// Vertex normals (the geometric normal where the mesh has none).
+    pub normals: [Vec3; 3],
+    pub uvs: [Vec2; 3],
+    pub material: u32,
+    /// Global prim (node) index: layers' nodes numbered one after another.
+    pub prim: u32,
+}
+
+/// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
+#[derive(Debug, Clone, Default)]
+pub struct Geometry {
+    pub triangles: Vec<Triangle>,
+    pub shading: Vec<TriangleShading>,
+}
+
+impl Geometry {
+    pub fn len(&self) -> usize {
+        self.triangles.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+
+    pub fn bytes(&self) -> usize {
+        self.triangles.len() * (size_of::<Triangle>() + size_of::<TriangleShading>())
+    }
+
+    /// Appends a primitive transformed by `world` — or, when skinned, by its `joints`
+    /// matrices (glTF §3.7.3: the mesh node's own transform is then ignored) — after
+    /// applying morph `weights`.
+    pub fn push_primitive(
+        &mut self,
+        p: &Primitive,
+        world: Mat4,
+        joints: Option<&[Mat4]>,
+        weights: &[f32],
+        prim: u32,
+    ) {
+        let n = p.positions.len();
+        let mut pos = p.positions.clone();
+        let mut nrm = p.normals.clone();
+        for (w, target) in weights.iter().zip(&p.targets) {
+            if *w == 0.0 {
+                continue;
+            }
+            for (v, d) in pos.iter_mut().zip(&target.positions) {
+                *v += *w * *d;
+            }
+            if let Some(nrm) = nrm.as_mut() {
+                for (v, d) in nrm.iter_mut().zip(&target.normals) {
+                    *v += *w * *d;
+                }
+            }
+        }
+        // Per-vertex matrix: skinning blends joint matrices by weight.
+        let skin = |v: usize| -> Mat4 {
+            match joints {
+                Some(j) if v < p.joints.len() && v < p.weights.len() => {
+                    let mut m = Mat4::ZERO;
+                    for k in 0..4 {
+                        let w = p.weights[v][k];
+                        if w != 0.0 {
+                            m += j
+                                .get(p.joints[v][k] as usize)
+                                .copied()
+                                .unwrap_or(Mat4::IDENTITY)
+                                * w;
+                        }
+                    }
+                    m
+                }
+                _ => world,
+            }
+        };
+        let mut wpos = Vec::with_capacity(n);
+        let mut wnrm = Vec::with_capacity(n);
+        for v in 0..n {
+            let m = if joints.is_some() { skin(v) } else { world };
+            wpos.push(m.transform_point3(pos[v]));
+            if let Some(nrm) = &nrm {
+                let nm = Mat3::from_mat4(m).inverse().transpose();
+                wnrm.push((nm * nrm[v]).normalize_or_zero());
+            }
+        }
+        let mirrored = joints.is_none() && world.determinant() < 0.0;
+        for t in p.indices.chunks_exact(3) {
+            let mut idx = [t[0] as usize, t[1] as usize, t[2] as usize];
+            if mirrored {
+                idx.swap(1, 2);
+            }
+            let [a, b, c] = idx.map(|i| wpos[i]);
+            let ng = (b - a).cross(c - a);
+            if !(ng.length_squared() > 0.0) || !ng.is_finite() {
+                continue; // collapsed by a zero scale or a degenerate skin pose
+            }
+            let ng = ng.normalize();
+            let normals = idx.map(|i| match wnrm.get(i) {
+                Some(v) if v.length_squared() > 0.5 => *v,
+                _ => ng,
+            });
+            let uvs = idx.map(|i| {
+                p.uvs
+                    .as_ref()
+                    .and_then(|u| u.get(i).copied())
+                    .unwrap_or(Vec2::ZERO)
+            });
+            self.triangles.push(Triangle {
+                v0: a.into(),
+                v1: b.into(),
+                v2: c.into(),
+            });
+            self.shading.push(TriangleShading {
+                normals,
+                uvs,
+                material: p.material as u32,
+                prim,
+            });
+        }
+    }
+}
+
+/// A pinhole or orthographic camera in world space.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameCamera {
+    pub origin: Vec3,
+    pub right: Vec3,
+    pub up: Vec3,
+    /// Viewing direction (the camera's −Z).
+    pub forward: Vec3,
+    pub projection: Projection,
+    pub aspect: f32,
+}
+
+impl FrameCamera {
+    /// From a camera node's world matrix (scale removed: cameras look along −Z).
+    pub fn from_matrix(world: Mat4, projection: Projection, aspect: f32) -> Self {
+        let (_, rot, origin) = world.to_scale_rotation_translation();
+        FrameCamera {
+            origin,
+            right: rot * Vec3::X,
+            up: rot * Vec3::Y,
+            forward: rot * -Vec3::Z,
+            projection,
+            aspect,
+        }
+    }
+
+    pub fn look_at(position: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) -> Self {
+        let forward = (target - position).normalize();
+        let right = forward.cross(up).normalize();
+        FrameCamera {
+            origin: position,
+            right,
+            up: right.cross(forward),
+            forward,
+            projection: Projection::Perspective { yfov },
+            aspect,
+        }
+    }
+
+    /// Ray through film position `(x, y)` in `[0, 1]²`, y down. Returns origin and unit
+    /// direction.
+    pub fn ray(&self, x: f32, y: f32) -> (Vec3, Vec3) {
+        let sx = 2.0 * x - 1.0;
+        let sy = 1.0 - 2.0 * y;
+        match self.projection {
+            Projection::Perspective { yfov } => {
+                let h = (0.5 * yfov).tan();
+                let d = self.forward + self.right * (sx * h * self.aspect) + self.up * (sy * h);
+                (self.origin, d.normalize())
+            }
+            Projection::Orthographic { ymag } => {
+                let o =
+                    self.origin + self.right * (sx * ymag * self.aspect) + self.up * (sy * ymag);
+                (o, self.forward)
+            }
+        }
+    }
+}
+
+/// A punctual light in world space. `intensity` is colour × intensity: radiant intensity
+/// (point, spot) or irradiance at normal incidence (directional).
+#[derive(Debug, Clone, Copy)]
+pub struct PunctualLight {
+    pub kind: LightKind,
+    pub position: Vec3,
+    /// Direction the light points (its −Z); for directional lights, the light travels along it.
+    pub direction: Vec3,
+    pub intensity: Vec3,
+    pub range: Option<f32>,
+}
+
+impl PunctualLight {
+    pub fn new(l: &Light, world: Mat4) -> Self {
+        let (scale, rot, position) = world.to_scale_rotation_translation();
+        PunctualLight {
+            kind: l.kind,
+            position,
+            direction: (rot * -Vec3::Z).normalize(),
+            intensity: l.color * l.intensity,
+            // Range is in the light node's units.
+            range: l.range.map(|r| r * scale.abs().max_element()),
+        }
+    }
+}
+
+/// An emissive triangle, for sampling direct light.
+#[derive(Debug, Clone, Copy)]
+pub struct Emitter {
+    pub motion: Motion,
+    pub triangle: u32,
+    pub area: f32,
+    /// Emitted radiance.
+    pub radiance: Vec3,
+    pub double_sided: bool,
+}
+
+/// Emissive triangles with a power-proportional discrete distribution.
+#[derive(Debug, Clone, Default)]
+pub struct Emitters {
+    pub list: Vec<Emitter>,
+    /// Cumulative, normalised power; `cdf[i]` is the probability of choosing `list[..=i]`.
+    pub cdf: Vec<f32>,
+}
+
+impl Emitters {
+    fn new(sets: [(&Geometry, Motion); 2], materials: &[Material]) -> Self {
+        let mut list = Vec::new();
+        let mut power = Vec::new();
+        for (g, motion) in sets {
+            for (i, (t, s)) in g.triangles.iter().zip(&g.shading).enumerate() {
+                let m = &materials[s.material as usize];
+                if !m.is_emissive() {
+                    continue;
+                }
+                let area = 0.5 * (t.v1 - t.v0).cross(t.v2 - t.v0).length();
+                let luminance = m.emission.dot(Vec3::new(0.2126, 0.7152, 0.0722)).max(1e-30);
+                // Power is used only in ratios: area × luminance × sides. Computed in f64 so
+                // that kilometre-sized emitters do not overflow.
+                power.push(area as f64 * luminance as f64 * if m.double_sided { 2.0 } else { 1.0 });
+                list.push(Emitter {
+                    motion,
+                    triangle: i as u32,
+                    area,
+                    radiance: m.emission,
+                    double_sided: m.double_sided,
+                });
+            }
+        }
+        let total: f64 = power.iter().sum();
+        let mut acc = 0.0;
+        let cdf = power
+            .iter()
+            .map(|p| {
+                acc += p;
+                (acc / total) as f32
+            })
+            .collect();
+        Emitters { list, cdf }
+    }
+
+    /// Picks an emitter with probability proportional to its power: `(index, probability)`.
+    pub fn pick(&self, u: f32) -> Option<(usize, f32)> {
+        if self.list.is_empty() {
+            return None;
+        }
+        let i = self
+            .cdf
+            .partition_point(|&c| c <= u)
+            .min(self.list.len() - 1);
+        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
+        Some((i, self.cdf[i] - lo))
+    }
+}
+
+/// Everything one frame needs to trace rays.
+pub struct FrameScene {
+    pub static_geometry: Arc<Geometry>,
+    pub dynamic_geometry: Geometry,
+    pub accel: Accel,
+    pub lights: Vec<PunctualLight>,
+    pub emitters: Emitters,
+    pub camera: FrameCamera,
+}
+
+impl FrameScene {
+    /// Builds the dynamic BVH; the static set and its BVH are shared between frames.
+    pub fn new(
+        statics: &StaticSet,
+        dynamic_geometry: Geometry,
+        lights: Vec<PunctualLight>,
+        camera: FrameCamera,
+        materials: &[Material],
+    ) -> Self {
+        let accel = Accel::with_static(statics.bvh.clone(), &dynamic_geometry);
+        let static_geometry = statics.geometry.clone();
+        let emitters = Emitters::new(
+            [
+                (&static_geometry, Motion::Static),
+                (&dynamic_geometry, Motion::Dynamic),
+            ],
+            materials,
+        );
+        FrameScene {
+            static_geometry,
+            dynamic_geometry,
+            accel,
+            lights,
+            emitters,
+            camera,
+        }
+    }
+
+    pub fn geometry(&self, motion: Motion) -> &Geometry {
+        match motion {
+            Motion::Static => &self.static_geometry,
+            Motion::Dynamic => &self.dynamic_geometry,
+        }
+    }
+
+    /// Largest absolute coordinate of any vertex: the scene's scale for error bounds.
+    pub fn extent(&self) -> f32 {
+        let m = |g: &Geometry| {
+            g.triangles
+                .iter()
+                .map(|t| t.v0.abs().max(t.v1.abs()).max(t.v2.abs()).max_element())
+                .fold(0.0f32, f32::max)
+        };
+        m(&self.static_geometry).max(m(&self.dynamic_geometry))
+    }
+}
+
+/// Helper for tests and tools: a triangle from three points.
+pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Triangle {
+    Triangle {
+        v0: Vec3A::from(a),
+        v1: Vec3A::from(b),
+        v2: Vec3A::from(c),
+    }
+}

@@ -1,0 +1,667 @@
+//! glTF 2.0 import: `.gltf` with external or embedded buffers and images, and `.glb`.
+//!
+//! The `gltf` crate parses and validates; this module checks what the crate leaves to the
+//! caller (extensions, files that exist, accessor bounds, finite positions, index ranges)
+//! so that bad input is an [`Error::Input`] naming the file and the element at fault, never
+//! a panic, and converts the document into the renderer's own [`Layer`] description.
+
+use std::path::Path;
+
+use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
+use gltf::animation::util::ReadOutputs;
+use gltf::khr_lights_punctual::Kind;
+use gltf::mesh::Mode;
+
+use super::anim::{Animation, Channel, Interpolation, Property, Sampler};
+use super::material::{Material, Texture, TextureRef, Wrap, srgb_to_linear};
+use super::{
+    Camera, Layer, Light, LightKind, Mesh, MorphTarget, Motion, Node, Primitive, Projection, Skin,
+};
+use crate::error::{Error, Result};
+
+/// Extensions whose meaning the renderer implements.
+pub const SUPPORTED_EXTENSIONS: &[&str] =
+    &["KHR_lights_punctual", "KHR_materials_emissive_strength"];
+
+/// The extras key that carries a prim's motion tag (schemas/motion-tag.schema.json).
+pub const MOTION_KEY: &str = "motion";
+
+/// Where a layer's global material and texture indices start.
+pub struct Offsets {
+    pub materials: usize,
+    pub textures: usize,
+}
+
+/// What [`load`] returns besides the layer: materials and textures for the global lists.
+pub struct Loaded {
+    pub layer: Layer,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+}
+
+fn name_of(kind: &str, index: usize, name: Option<&str>) -> String {
+    match name {
+        Some(n) if !n.is_empty() => format!("{kind}[{index}] \"{n}\""),
+        _ => format!("{kind}[{index}]"),
+    }
+}
+
+/// Loads one glTF file. `offsets` are where this layer's materials and textures will sit in
+/// the scene's global lists.
+pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
+    let bad = |at: &str, msg: String| Error::input(path, at, msg);
+    let bytes = std::fs::read(path).map_err(|e| bad("file", format!("cannot read: {e}")))?;
+    let unchecked = gltf::Gltf::from_slice_without_validation(&bytes)
+        .map_err(|e| bad("file", format!("not a valid glTF or GLB file: {e}")))?;
+    let mut warnings = Vec::new();
+    let required: Vec<String> = unchecked
+        .extensions_required()
+        .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
+        .map(str::to_owned)
+        .collect();
+    if !required.is_empty() {
+        return Err(bad(
+            "extensionsRequired",
+            format!(
+                "the file requires {} which anchorage does not support (supported: {})",
+                required.join(", "),
+                SUPPORTED_EXTENSIONS.join(", ")
+            ),
+        ));
+    }
+    let optional: Vec<&str> = unchecked
+        .extensions_used()
+        .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
+        .collect();
+    if !optional.is_empty() {
+        warnings.push(format!(
+            "{}: optional extensions ignored: {}",
+            path.display(),
+            optional.join(", ")
+        ));
+    }
+    drop(unchecked);
+    let gltf = gltf::Gltf::from_slice(&bytes).map_err(|e| bad("file", e.to_string()))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let doc = &gltf.document;
+
+    for b in doc.buffers() {
+        if let gltf::buffer::Source::Uri(uri) = b.source()
+            && !uri.starts_with("data:")
+        {
+            let file = base.join(urlencoding_decode(uri));
+            if !file.is_file() {
+                return Err(bad(
+                    &name_of("buffers", b.index(), b.name()),
+                    format!("buffer file {} not found", file.display()),
+                ));
+            }
+        }
+    }
+    for im in doc.images() {
+        if let gltf::image::Source::Uri { uri, .. } = im.source()
+            && !uri.starts_with("data:")
+            && !base.join(urlencoding_decode(uri)).is_file()
+        {
+            return Err(bad(
+                &name_of("images", im.index(), im.name()),
+                format!("image file {} not found", base.join(uri).display()),
+            ));
+        }
+    }
+    let buffers = gltf::import_buffers(doc, Some(base), gltf.blob.clone())
+        .map_err(|e| bad("buffers", format!("cannot load buffer data: {e}")))?;
+    check_accessors(path, doc, &buffers)?;
+
+    // Textures: only base colour textures are decoded (sRGB → linear).
+    let mut texture_of_image = vec![None; doc.images().len()];
+    let mut textures = Vec::new();
+    let mut images: Option<Vec<gltf::image::Data>> = None;
+    let mut materials = Vec::new();
+    for m in doc.materials() {
+        let at = name_of("materials", m.index().unwrap_or(0), m.name());
+        let pbr = m.pbr_metallic_roughness();
+        let mut base_color_texture = None;
+        if let Some(info) = pbr.base_color_texture() {
+            if info.tex_coord() != 0 {
+                return Err(bad(
+                    &at,
+                    "base colour texture uses TEXCOORD_1 or higher; only TEXCOORD_0 is supported"
+                        .into(),
+                ));
+            }
+            let tex = info.texture();
+            let image = tex.source().index();
+            if images.is_none() {
+                images = Some(
+                    gltf::import_images(doc, Some(base), &buffers)
+                        .map_err(|e| bad("images", format!("cannot decode image: {e}")))?,
+                );
+            }
+            let idx = match texture_of_image[image] {
+                Some(i) => i,
+                None => {
+                    let data = &images.as_ref().expect("decoded above")[image];
+                    let t = decode_texture(data).ok_or_else(|| {
+                        bad(
+                            &name_of("images", image, None),
+                            format!("unsupported pixel format {:?}", data.format),
+                        )
+                    })?;
+                    textures.push(t);
+                    let i = offsets.textures + textures.len() - 1;
+                    texture_of_image[image] = Some(i);
+                    i
+                }
+            };
+            let s = tex.sampler();
+            base_color_texture = Some(TextureRef {
+                texture: idx,
+                wrap: [wrap(s.wrap_s()), wrap(s.wrap_t())],
+            });
+        }
+        if m.emissive_texture().is_some() {
+            warnings.push(format!(
+                "{}: {at}: emissiveTexture is not supported; emission uses emissiveFactor alone",
+                path.display()
+            ));
+        }
+        let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
+        if !emission.is_finite() || emission.min_element() < 0.0 {
+            return Err(bad(&at, "emission must be finite and non-negative".into()));
+        }
+        materials.push(Material {
+            name: m.name().unwrap_or("").to_owned(),
+            base_color: Vec4::from(pbr.base_color_factor()),
+            base_color_texture,
+            emission,
+            double_sided: m.double_sided(),
+            roughness: pbr.roughness_factor(),
+            metallic: pbr.metallic_factor(),
+        });
+    }
+    let get = |b: gltf::Buffer<'_>| Some(&buffers[b.index()].0[..]);
+
+    // Meshes.
+    let mut meshes = Vec::new();
+    let mut degenerate = 0usize;
+    for mesh in doc.meshes() {
+        let mesh_at = name_of("meshes", mesh.index(), mesh.name());
+        let mut primitives = Vec::new();
+        for p in mesh.primitives() {
+            let at = format!("{mesh_at}.primitives[{}]", p.index());
+            let mode = p.mode();
+            if !matches!(
+                mode,
+                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+            ) {
+                warnings.push(format!(
+                    "{}: {at}: {mode:?} primitives are not rendered",
+                    path.display()
+                ));
+                continue;
+            }
+            let r = p.reader(get);
+            let positions: Vec<Vec3> = r
+                .read_positions()
+                .ok_or_else(|| bad(&at, "has no POSITION attribute".into()))?
+                .map(Vec3::from)
+                .collect();
+            if let Some(i) = positions.iter().position(|v| !v.is_finite()) {
+                return Err(bad(
+                    &at,
+                    format!("POSITION {i} is not finite ({})", positions[i]),
+                ));
+            }
+            let normals: Option<Vec<Vec3>> = r.read_normals().map(|n| n.map(Vec3::from).collect());
+            let uvs: Option<Vec<Vec2>> = r
+                .read_tex_coords(0)
+                .map(|t| t.into_f32().map(Vec2::from).collect());
+            let raw: Vec<u32> = match r.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..positions.len() as u32).collect(),
+            };
+            if let Some(&i) = raw.iter().find(|&&i| i as usize >= positions.len()) {
+                return Err(bad(
+                    &at,
+                    format!("index {i} is out of range ({} vertices)", positions.len()),
+                ));
+            }
+            let mut indices = triangulate(mode, &raw);
+            let before = indices.len() / 3;
+            indices = drop_degenerate(&positions, indices);
+            degenerate += before - indices.len() / 3;
+            let joints: Vec<[u16; 4]> = r
+                .read_joints(0)
+                .map(|j| j.into_u16().collect())
+                .unwrap_or_default();
+            let weights: Vec<[f32; 4]> = r
+                .read_weights(0)
+                .map(|w| w.into_f32().collect())
+                .unwrap_or_default();
+            let targets = r
+                .read_morph_targets()
+                .map(|(pos, nrm, _)| MorphTarget {
+                    positions: pos.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
+                    normals: nrm.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
+                })
+                .collect::<Vec<_>>();
+            for (ti, t) in targets.iter().enumerate() {
+                if (!t.positions.is_empty() && t.positions.len() != positions.len())
+                    || t.positions.iter().any(|v| !v.is_finite())
+                {
+                    return Err(bad(
+                        &format!("{at}.targets[{ti}]"),
+                        "POSITION must be finite and match the vertex count".into(),
+                    ));
+                }
+            }
+            let material = match p.material().index() {
+                Some(i) => offsets.materials + 1 + i,
+                None => 0,
+            };
+            primitives.push(Primitive {
+                positions,
+                normals: normals.filter(|n| n.iter().all(|v| v.is_finite())),
+                uvs,
+                indices,
+                material,
+                joints,
+                weights,
+                targets,
+            });
+        }
+        meshes.push(Mesh {
+            name: mesh.name().unwrap_or("").to_owned(),
+            weights: mesh.weights().map(<[f32]>::to_vec).unwrap_or_default(),
+            primitives,
+        });
+    }
+    if degenerate > 0 {
+        warnings.push(format!(
+            "{}: {degenerate} degenerate (zero-area) triangles skipped",
+            path.display()
+        ));
+    }
+
+    let skins = doc
+        .skins()
+        .map(|s| {
+            let r = s.reader(get);
+            let joints: Vec<usize> = s.joints().map(|j| j.index()).collect();
+            let inverse_bind: Vec<Mat4> = match r.read_inverse_bind_matrices() {
+                Some(m) => m.map(|c| Mat4::from_cols_array_2d(&c)).collect(),
+                None => vec![Mat4::IDENTITY; joints.len()],
+            };
+            Skin {
+                joints,
+                inverse_bind,
+            }
+        })
+        .collect();
+
+    let lights: Vec<Light> = doc
+        .lights()
+        .map(|ls| {
+            ls.map(|l| Light {
+                name: l.name().unwrap_or("").to_owned(),
+                color: Vec3::from(l.color()),
+                intensity: l.intensity(),
+                range: l.range(),
+                kind: match l.kind() {
+                    Kind::Directional => LightKind::Directional,
+                    Kind::Point => LightKind::Point,
+                    Kind::Spot {
+                        inner_cone_angle,
+                        outer_cone_angle,
+                    } => LightKind::Spot {
+                        inner: inner_cone_angle,
+                        outer: outer_cone_angle,
+                    },
+                },
+            })
+            .collect()
+        })
+        .unwrap_or_default();
+    for (i, l) in lights.iter().enumerate() {
+        if !(l.intensity.is_finite() && l.intensity >= 0.0 && l.color.is_finite()) {
+            return Err(bad(
+                &name_of("KHR_lights_punctual.lights", i, Some(&l.name)),
+                "intensity and colour must be finite and non-negative".into(),
+            ));
+        }
+    }
+
+    let cameras = doc
+        .cameras()
+        .map(|c| Camera {
+            name: c.name().unwrap_or("").to_owned(),
+            projection: match c.projection() {
+                gltf::camera::Projection::Perspective(p) => {
+                    Projection::Perspective { yfov: p.yfov() }
+                }
+                gltf::camera::Projection::Orthographic(o) => {
+                    Projection::Orthographic { ymag: o.ymag() }
+                }
+            },
+        })
+        .collect();
+
+    // Nodes, with tags from extras.
+    let mut nodes: Vec<Node> = Vec::new();
+    for n in doc.nodes() {
+        let (t, r, s) = n.transform().decomposed();
+        let at = name_of("nodes", n.index(), n.name());
+        let tag =
+            motion_tag(n.extras()).map_err(|m| bad(&format!("{at}.extras.{MOTION_KEY}"), m))?;
+        nodes.push(Node {
+            name: n.name().unwrap_or("").to_owned(),
+            parent: None,
+            children: n.children().map(|c| c.index()).collect(),
+            translation: Vec3::from(t),
+            rotation: Quat::from_array(r).normalize(),
+            scale: Vec3::from(s),
+            mesh: n.mesh().map(|m| m.index()),
+            skin: n.skin().map(|s| s.index()),
+            camera: n.camera().map(|c| c.index()),
+            light: n.light().map(|l| l.index()),
+            weights: n.weights().map(<[f32]>::to_vec),
+            extras_tag: tag,
+            motion: Motion::Static,
+            why: super::TagSource::DefaultStatic,
+        });
+    }
+    for i in 0..nodes.len() {
+        for c in nodes[i].children.clone() {
+            nodes[c].parent = Some(i);
+        }
+    }
+    let roots: Vec<usize> = match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(s) => s.nodes().map(|n| n.index()).collect(),
+        None => (0..nodes.len())
+            .filter(|&i| nodes[i].parent.is_none())
+            .collect(),
+    };
+
+    let mut animations = Vec::new();
+    for a in doc.animations() {
+        let mut channels = Vec::new();
+        for ch in a.channels() {
+            let at = format!(
+                "{}.channels[{}]",
+                name_of("animations", a.index(), a.name()),
+                ch.index()
+            );
+            let r = ch.reader(get);
+            let times: Vec<f32> = r
+                .read_inputs()
+                .ok_or_else(|| bad(&at, "sampler has no input".into()))?
+                .collect();
+            if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
+                return Err(bad(&at, "key times must be finite and increasing".into()));
+            }
+            let (property, width, values): (Property, usize, Vec<f32>) = match r
+                .read_outputs()
+                .ok_or_else(|| bad(&at, "sampler has no output".into()))?
+            {
+                ReadOutputs::Translations(v) => (Property::Translation, 3, v.flatten().collect()),
+                ReadOutputs::Rotations(v) => {
+                    (Property::Rotation, 4, v.into_f32().flatten().collect())
+                }
+                ReadOutputs::Scales(v) => (Property::Scale, 3, v.flatten().collect()),
+                ReadOutputs::MorphTargetWeights(v) => {
+                    let all: Vec<f32> = v.into_f32().collect();
+                    let per_key = if times.is_empty() {
+                        0
+                    } else {
+                        all.len() / times.len()
+                    };
+                    let stride = if ch.sampler().interpolation()
+                        == gltf::animation::Interpolation::CubicSpline
+                    {
+                        3
+                    } else {
+                        1
+                    };
+                    (Property::Weights, per_key / stride, all)
+                }
+            };
+            let interpolation = match ch.sampler().interpolation() {
+                gltf::animation::Interpolation::Step => Interpolation::Step,
+                gltf::animation::Interpolation::Linear => Interpolation::Linear,
+                gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
+            };
+            let stride = if interpolation == Interpolation::CubicSpline {
+                3
+            } else {
+                1
+            };
+            if width == 0
+                || values.len() != times.len() * stride * width
+                || values.iter().any(|v| !v.is_finite())
+            {
+                return Err(bad(
+                    &at,
+                    format!(
+                        "sampler output has {} values for {} keys (expected {} finite values)",
+                        values.len(),
+                        times.len(),
+                        times.len() * stride * width
+                    ),
+                ));
+            }
+            channels.push(Channel {
+                node: ch.target().node().index(),
+                property,
+                sampler: Sampler {
+                    interpolation,
+                    times,
+                    values,
+                    width,
+                },
+            });
+        }
+        animations.push(Animation {
+            name: match a.name() {
+                Some(n) if !n.is_empty() => n.to_owned(),
+                _ => format!("animations[{}]", a.index()),
+            },
+            channels,
+        });
+    }
+
+    Ok(Loaded {
+        layer: Layer {
+            path: path.to_path_buf(),
+            transform: Mat4::IDENTITY,
+            nodes,
+            roots,
+            meshes,
+            skins,
+            animations,
+            lights,
+            cameras,
+            degenerate_triangles: degenerate,
+            warnings,
+        },
+        materials,
+        textures,
+    })
+}
+
+/// Reads the motion tag from a node's extras. Extras that are not an object, objects without
+/// the key, and any other keys are ignored (other tools write their own extras); the key
+/// itself must hold `"static"` or `"dynamic"`.
+pub fn motion_tag(extras: &gltf::json::Extras) -> std::result::Result<Option<Motion>, String> {
+    let Some(raw) = extras else { return Ok(None) };
+    let Ok(serde_json::Value::Object(map)) = serde_json::from_str::<serde_json::Value>(raw.get())
+    else {
+        return Ok(None);
+    };
+    match map.get(MOTION_KEY) {
+        None => Ok(None),
+        Some(serde_json::Value::String(s)) if s == "static" => Ok(Some(Motion::Static)),
+        Some(serde_json::Value::String(s)) if s == "dynamic" => Ok(Some(Motion::Dynamic)),
+        Some(v) => Err(format!("must be \"static\" or \"dynamic\", got {v}")),
+    }
+}
+
+/// Percent-decoding of relative URIs (glTF URIs are RFC 3986).
+fn urlencoding_decode(uri: &str) -> String {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let Ok(v) = u8::from_str_radix(&uri[i + 1..i + 3], 16)
+        {
+            out.push(v);
+            i += 3;
+            continue;
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// Checks that every accessor's elements lie inside its buffer view and every view inside its
+/// buffer's data, so that reading can never go out of bounds.
+fn check_accessors(
+    path: &Path,
+    doc: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+) -> Result<()> {
+    for v in doc.views() {
+        let len = buffers[v.buffer().index()].0.len();
+        if v.offset()
+            .checked_add(v.length())
+            .is_none_or(|end| end > len)
+        {
+            return Err(Error::input(
+                path,
+                name_of("bufferViews", v.index(), v.name()),
+                format!(
+                    "bytes {}..{} lie outside its buffer ({len} bytes)",
+                    v.offset(),
+                    v.offset() + v.length()
+                ),
+            ));
+        }
+    }
+    for a in doc.accessors() {
+        let Some(v) = a.view() else { continue };
+        let elem = a.size();
+        let stride = v.stride().unwrap_or(elem);
+        let need = if a.count() == 0 {
+            0
+        } else {
+            a.offset() + (a.count() - 1) * stride + elem
+        };
+        if need > v.length() {
+            return Err(Error::input(
+                path,
+                name_of("accessors", a.index(), a.name()),
+                format!(
+                    "{} elements need {need} bytes but its buffer view holds {}",
+                    a.count(),
+                    v.length()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+fn wrap(w: gltf::texture::WrappingMode) -> Wrap {
+    match w {
+        gltf::texture::WrappingMode::Repeat => Wrap::Repeat,
+        gltf::texture::WrappingMode::MirroredRepeat => Wrap::MirroredRepeat,
+        gltf::texture::WrappingMode::ClampToEdge => Wrap::ClampToEdge,
+    }
+}
+
+/// Decodes an 8- or 16-bit colour image to linear RGBA (sRGB decoded, alpha linear).
+fn decode_texture(data: &gltf::image::Data) -> Option<Texture> {
+    use gltf::image::Format::*;
+    let (channels, wide) = match data.format {
+        R8 => (1, false),
+        R8G8 => (2, false),
+        R8G8B8 => (3, false),
+        R8G8B8A8 => (4, false),
+        R16 => (1, true),
+        R16G16 => (2, true),
+        R16G16B16 => (3, true),
+        R16G16B16A16 => (4, true),
+        _ => return None,
+    };
+    let count = (data.width * data.height) as usize;
+    let value = |i: usize| -> f32 {
+        if wide {
+            u16::from_le_bytes([data.pixels[2 * i], data.pixels[2 * i + 1]]) as f32 / 65535.0
+        } else {
+            data.pixels[i] as f32 / 255.0
+        }
+    };
+    // 256-entry table for 8-bit sRGB decoding.
+    let lut: Vec<f32> = (0..256).map(|c| srgb_to_linear(c as f32 / 255.0)).collect();
+    let decode = |c: f32| {
+        if wide {
+            srgb_to_linear(c)
+        } else {
+            lut[(c * 255.0).round() as usize]
+        }
+    };
+    let texels = (0..count)
+        .map(|p| {
+            let c = |k: usize| value(p * channels + k);
+            match channels {
+                1 => Vec4::new(decode(c(0)), decode(c(0)), decode(c(0)), 1.0),
+                2 => Vec4::new(decode(c(0)), decode(c(0)), decode(c(0)), c(1)),
+                3 => Vec4::new(decode(c(0)), decode(c(1)), decode(c(2)), 1.0),
+                _ => Vec4::new(decode(c(0)), decode(c(1)), decode(c(2)), c(3)),
+            }
+        })
+        .collect();
+    Some(Texture {
+        width: data.width,
+        height: data.height,
+        texels,
+    })
+}
+
+/// Triangle list indices for any triangle mode (strips alternate winding; fans share vertex 0).
+fn triangulate(mode: Mode, raw: &[u32]) -> Vec<u32> {
+    match mode {
+        Mode::TriangleStrip => (0..raw.len().saturating_sub(2))
+            .flat_map(|i| {
+                if i % 2 == 0 {
+                    [raw[i], raw[i + 1], raw[i + 2]]
+                } else {
+                    [raw[i + 1], raw[i], raw[i + 2]]
+                }
+            })
+            .collect(),
+        Mode::TriangleFan => (1..raw.len().saturating_sub(1))
+            .flat_map(|i| [raw[0], raw[i], raw[i + 1]])
+            .collect(),
+        _ => raw[..raw.len() / 3 * 3].to_vec(),
+    }
+}
+
+/// Removes zero-area triangles (repeated vertices or collinear corners): they cannot be hit
+/// and carry no normal.
+fn drop_degenerate(p: &[Vec3], indices: Vec<u32>) -> Vec<u32> {
+    indices
+        .chunks_exact(3)
+        .filter(|t| {
+            let (a, b, c) = (p[t[0] as usize], p[t[1] as usize], p[t[2] as usize]);
+            let n = (b - a).cross(c - a);
+            let scale = (b - a).length_squared().max((c - a).length_squared());
+            n.length_squared() > scale * scale * 1e-14 && n.is_finite()
+        })
+        .flatten()
+        .copied()
+        .collect()
+}

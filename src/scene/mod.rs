@@ -1,0 +1,586 @@
+//! The editable scene description (STYLE.md §2, Tungsten's `Scene`): glTF layers composed
+//! by a job file, with every prim's motion tag resolved. [`Scene::evaluate`] is the one
+//! function that turns it into the immutable, render-ready [`FrameScene`] at a time `t`.
+//!
+//! Motion tags (DESIGN.md, Scene conventions): a node's `extras.motion` (`"static"` or
+//! `"dynamic"`) — what Blender writes for a custom property `motion` and what usd2gltf
+//! writes for a USD attribute `gltf:motion` — is inherited by its children; the job file
+//! overrides it by node name. An untagged prim is dynamic if an animation moves it,
+//! otherwise static. A prim tagged static that an animation moves is an error. The anchor
+//! method (paper §3) relies on the tag: only dynamic prims may change between frames.
+
+pub mod anim;
+pub mod frame;
+pub mod gltf;
+pub mod material;
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use glam::{Mat4, Quat, Vec3};
+use serde::{Deserialize, Serialize};
+
+pub use frame::{FrameCamera, FrameScene, Geometry, PunctualLight, StaticSet, TriangleShading};
+pub use material::{Material, Texture};
+
+use crate::error::{Error, Result};
+use crate::job::{CameraFile, Job};
+use anim::{Animation, Property};
+
+/// Whether a prim may change between frames (the paper's static/dynamic objects, §3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Motion {
+    Static,
+    Dynamic,
+}
+
+/// Why a node has the motion it has (reported by `anchorage inspect`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TagSource {
+    /// The job file's `tags` for this node's name.
+    Job,
+    /// The node's own `extras.motion`.
+    Extras,
+    /// Inherited from the named ancestor's tag.
+    Inherited(String),
+    /// Untagged and moved by the named animation.
+    DefaultAnimated(String),
+    /// Untagged and not animated.
+    DefaultStatic,
+}
+
+impl std::fmt::Display for TagSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TagSource::Job => write!(f, "job file override"),
+            TagSource::Extras => write!(f, "tagged in extras"),
+            TagSource::Inherited(n) => write!(f, "inherited from {n}"),
+            TagSource::DefaultAnimated(a) => write!(f, "untagged, moved by animation {a}"),
+            TagSource::DefaultStatic => write!(f, "untagged, not animated"),
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct Node {
+    pub name: String,
+    pub parent: Option<usize>,
+    pub children: Vec<usize>,
+    pub translation: Vec3,
+    pub rotation: Quat,
+    pub scale: Vec3,
+    pub mesh: Option<usize>,
+    pub skin: Option<usize>,
+    pub camera: Option<usize>,
+    pub light: Option<usize>,
+    /// The node's own default morph weights (else the mesh's apply).
+    pub weights: Option<Vec<f32>>,
+    pub extras_tag: Option<Motion>,
+    /// Resolved motion (see the module doc).
+    pub motion: Motion,
+    pub why: TagSource,
+}
+
+#[derive(Debug, Clone)]
+pub struct MorphTarget {
+    /// Position displacements (empty when the target moves no positions).
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Primitive {
+    pub positions: Vec<Vec3>,
+    pub normals: Option<Vec<Vec3>>,
+    pub uvs: Option<Vec<glam::Vec2>>,
+    /// Triangle list, degenerate triangles removed.
+    pub indices: Vec<u32>,
+    /// Index into [`Scene::materials`].
+    pub material: usize,
+    pub joints: Vec<[u16; 4]>,
+    pub weights: Vec<[f32; 4]>,
+    pub targets: Vec<MorphTarget>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Mesh {
+    pub name: String,
+    pub weights: Vec<f32>,
+    pub primitives: Vec<Primitive>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Skin {
+    pub joints: Vec<usize>,
+    pub inverse_bind: Vec<Mat4>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LightKind {
+    Point,
+    /// Cone angles in radians from the light's −Z axis.
+    Spot {
+        inner: f32,
+        outer: f32,
+    },
+    Directional,
+}
+
+/// A `KHR_lights_punctual` light: intensity in candela (point, spot) or lux (directional).
+#[derive(Debug, Clone)]
+pub struct Light {
+    pub name: String,
+    pub kind: LightKind,
+    pub color: Vec3,
+    pub intensity: f32,
+    pub range: Option<f32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Projection {
+    /// Vertical field of view in radians.
+    Perspective { yfov: f32 },
+    /// Half the orthographic view height.
+    Orthographic { ymag: f32 },
+}
+
+#[derive(Debug, Clone)]
+pub struct Camera {
+    pub name: String,
+    pub projection: Projection,
+}
+
+/// One glTF file placed in the scene.
+#[derive(Debug, Clone)]
+pub struct Layer {
+    pub path: PathBuf,
+    pub transform: Mat4,
+    pub nodes: Vec<Node>,
+    pub roots: Vec<usize>,
+    pub meshes: Vec<Mesh>,
+    pub skins: Vec<Skin>,
+    pub animations: Vec<Animation>,
+    pub lights: Vec<Light>,
+    pub cameras: Vec<Camera>,
+    /// Zero-area triangles dropped on load (reported as a warning).
+    pub degenerate_triangles: usize,
+    pub warnings: Vec<String>,
+}
+
+/// The composed scene: layers plus the global material and texture lists.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    pub layers: Vec<Layer>,
+    /// Index 0 is glTF's default material.
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    /// The camera the job selects: (layer, node) of a glTF camera, or the job's own.
+    /// Always present in a scene from [`Scene::load`].
+    pub camera: Option<CameraChoice>,
+}
+
+#[derive(Debug, Clone)]
+pub enum CameraChoice {
+    Node { layer: usize, node: usize },
+    Job(CameraFile),
+}
+
+impl Layer {
+    /// Display name of a node for messages: `"Name"` or `nodes[i]`.
+    pub fn node_label(&self, i: usize) -> String {
+        match self.nodes[i].name.as_str() {
+            "" => format!("nodes[{i}]"),
+            n => format!("\"{n}\""),
+        }
+    }
+
+    /// For each node, the first animation that moves it (its own channels or an ancestor's,
+    /// or for a skinned mesh, any of its joints).
+    fn moved_by(&self) -> Vec<Option<String>> {
+        let mut own: HashMap<usize, &str> = HashMap::new();
+        for a in &self.animations {
+            for c in &a.channels {
+                own.entry(c.node).or_insert(&a.name);
+            }
+        }
+        let n = self.nodes.len();
+        let mut moved: Vec<Option<String>> = vec![None; n];
+        // Top-down over the hierarchy from the roots (and any unparented node).
+        let mut stack: Vec<usize> = (0..n).filter(|&i| self.nodes[i].parent.is_none()).collect();
+        let mut seen = vec![false; n];
+        while let Some(i) = stack.pop() {
+            if std::mem::replace(&mut seen[i], true) {
+                continue;
+            }
+            moved[i] = own
+                .get(&i)
+                .map(|s| s.to_string())
+                .or_else(|| self.nodes[i].parent.and_then(|p| moved[p].clone()));
+            stack.extend(self.nodes[i].children.iter().copied());
+        }
+        for i in 0..n {
+            if moved[i].is_none()
+                && let Some(s) = self.nodes[i].skin
+            {
+                moved[i] = self.skins[s]
+                    .joints
+                    .iter()
+                    .find_map(|&j| moved.get(j).cloned().flatten());
+            }
+        }
+        moved
+    }
+
+    /// Resolves every node's motion (module doc) and rejects static prims that move.
+    fn resolve_tags(
+        &mut self,
+        overrides: &std::collections::BTreeMap<String, Motion>,
+        job: &Job,
+        layer: usize,
+    ) -> Result<()> {
+        for name in overrides.keys() {
+            if !self.nodes.iter().any(|n| &n.name == name) {
+                return Err(Error::input(
+                    &job.path,
+                    format!("scene[{layer}].tags.{name}"),
+                    format!("no node named \"{name}\" in {}", self.path.display()),
+                ));
+            }
+        }
+        let moved = self.moved_by();
+        let n = self.nodes.len();
+        let mut stack: Vec<usize> = (0..n).filter(|&i| self.nodes[i].parent.is_none()).collect();
+        // An explicit tag (job or extras) travels down to children: (motion, from whom).
+        let mut explicit: Vec<Option<(Motion, String)>> = vec![None; n];
+        let mut seen = vec![false; n];
+        while let Some(i) = stack.pop() {
+            if std::mem::replace(&mut seen[i], true) {
+                continue;
+            }
+            let label = self.node_label(i);
+            let node = &self.nodes[i];
+            let (motion, why) = if let Some(&m) = overrides.get(&node.name) {
+                (m, TagSource::Job)
+            } else if let Some(m) = node.extras_tag {
+                (m, TagSource::Extras)
+            } else if let Some((m, from)) = node.parent.and_then(|p| explicit[p].clone()) {
+                (m, TagSource::Inherited(from))
+            } else if let Some(a) = &moved[i] {
+                (Motion::Dynamic, TagSource::DefaultAnimated(a.clone()))
+            } else {
+                (Motion::Static, TagSource::DefaultStatic)
+            };
+            explicit[i] = match &why {
+                TagSource::Job | TagSource::Extras => Some((motion, label.clone())),
+                TagSource::Inherited(from) => Some((motion, from.clone())),
+                _ => None,
+            };
+            if motion == Motion::Static
+                && node.mesh.is_some()
+                && let Some(a) = &moved[i]
+            {
+                return Err(Error::input(
+                    &self.path,
+                    format!("nodes[{i}] {label}"),
+                    format!(
+                        "is tagged static ({why}) but animation \"{a}\" moves it; tag it dynamic"
+                    ),
+                ));
+            }
+            let node = &mut self.nodes[i];
+            node.motion = motion;
+            node.why = why;
+            stack.extend(node.children.iter().copied());
+        }
+        Ok(())
+    }
+
+    /// Local transform of node `i` at time `t` (rest TRS overridden by animation channels).
+    fn local(&self, i: usize, t: f32, anim: &HashMap<(usize, u8), &anim::Sampler>) -> Mat4 {
+        let n = &self.nodes[i];
+        let tr = anim
+            .get(&(i, 0))
+            .map_or(n.translation, |s| s.sample_vec3(t));
+        let ro = anim.get(&(i, 1)).map_or(n.rotation, |s| s.sample_quat(t));
+        let sc = anim.get(&(i, 2)).map_or(n.scale, |s| s.sample_vec3(t));
+        Mat4::from_scale_rotation_translation(sc, ro, tr)
+    }
+
+    fn samplers(&self) -> HashMap<(usize, u8), &anim::Sampler> {
+        let mut m = HashMap::new();
+        for a in &self.animations {
+            for c in &a.channels {
+                let key = match c.property {
+                    Property::Translation => 0,
+                    Property::Rotation => 1,
+                    Property::Scale => 2,
+                    Property::Weights => 3,
+                };
+                m.entry((c.node, key)).or_insert(&c.sampler);
+            }
+        }
+        m
+    }
+
+    /// World matrix of every node at time `t`, the layer transform included.
+    pub fn world_matrices(&self, t: f32) -> Vec<Mat4> {
+        let anim = self.samplers();
+        let n = self.nodes.len();
+        let mut world = vec![Mat4::IDENTITY; n];
+        let mut stack: Vec<(usize, Mat4)> = (0..n)
+            .filter(|&i| self.nodes[i].parent.is_none())
+            .map(|i| (i, self.transform))
+            .collect();
+        let mut seen = vec![false; n];
+        while let Some((i, parent)) = stack.pop() {
+            if std::mem::replace(&mut seen[i], true) {
+                continue;
+            }
+            world[i] = parent * self.local(i, t, &anim);
+            for &c in &self.nodes[i].children {
+                stack.push((c, world[i]));
+            }
+        }
+        world
+    }
+
+    /// Morph weights of node `i` at time `t`.
+    fn morph_weights(
+        &self,
+        i: usize,
+        t: f32,
+        anim: &HashMap<(usize, u8), &anim::Sampler>,
+    ) -> Vec<f32> {
+        let node = &self.nodes[i];
+        let mesh = node.mesh.map(|m| &self.meshes[m]);
+        let mut w = node
+            .weights
+            .clone()
+            .or_else(|| mesh.map(|m| m.weights.clone()))
+            .unwrap_or_default();
+        if let Some(s) = anim.get(&(i, 3)) {
+            w.resize(s.width, 0.0);
+            s.sample(t, false, &mut w);
+        }
+        w
+    }
+
+    /// Animation time range over all channels, if any are animated.
+    pub fn time_range(&self) -> Option<(f32, f32)> {
+        self.animations
+            .iter()
+            .flat_map(|a| a.channels.iter())
+            .map(|c| c.sampler.range())
+            .reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
+    }
+}
+
+impl Scene {
+    /// Loads every layer of the job, resolves tags and the camera, and checks the frame
+    /// range against the animation: everything a render needs.
+    pub fn load(job: &Job) -> Result<Scene> {
+        let scene = Scene::load_layers(job)?;
+        if scene.camera.is_none() {
+            return Err(Error::input(
+                &job.path,
+                "camera",
+                "the scene has no camera; name one or give one in the job file",
+            ));
+        }
+        if let Some((t0, t1)) = scene.time_range() {
+            let half = (0.5 / job.fps) as f32;
+            for (key, f) in [
+                ("frames.start", job.frames.start),
+                ("frames.end", job.frames.end),
+            ] {
+                let t = job.time_of(f);
+                if t < t0 - half || t > t1 + half {
+                    return Err(Error::input(
+                        &job.path,
+                        key,
+                        format!(
+                            "frame {f} (t = {t:.4} s at {} fps, frame_offset {}) is outside the animation, which spans t = {t0:.4}..{t1:.4} s (frames {:.0}..{:.0})",
+                            job.fps,
+                            job.frame_offset,
+                            (t0 as f64 * job.fps + job.frame_offset).ceil(),
+                            (t1 as f64 * job.fps + job.frame_offset).floor()
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(scene)
+    }
+
+    /// Loads the layers and resolves tags; the camera is resolved where one exists (a camera
+    /// the job names must exist). For `inspect`, which also reads scenes without cameras.
+    pub fn load_layers(job: &Job) -> Result<Scene> {
+        let mut layers = Vec::new();
+        let mut materials = vec![Material::default()];
+        let mut textures = Vec::new();
+        for (li, l) in job.layers.iter().enumerate() {
+            let loaded = gltf::load(
+                &l.path,
+                gltf::Offsets {
+                    materials: materials.len() - 1,
+                    textures: textures.len(),
+                },
+            )?;
+            let mut layer = loaded.layer;
+            layer.transform = l.transform;
+            layer.resolve_tags(&l.tags, job, li)?;
+            materials.extend(loaded.materials);
+            textures.extend(loaded.textures);
+            layers.push(layer);
+        }
+        let camera = match &job.camera {
+            Some(CameraFile::Node { node }) => Some(
+                layers
+                    .iter()
+                    .enumerate()
+                    .find_map(|(li, l)| {
+                        l.nodes
+                            .iter()
+                            .position(|n| &n.name == node && n.camera.is_some())
+                            .map(|ni| CameraChoice::Node {
+                                layer: li,
+                                node: ni,
+                            })
+                    })
+                    .ok_or_else(|| {
+                        Error::input(
+                            &job.path,
+                            "camera.node",
+                            format!("no camera node named \"{node}\" in the scene"),
+                        )
+                    })?,
+            ),
+            Some(c) => Some(CameraChoice::Job(c.clone())),
+            None => layers.iter().enumerate().find_map(|(li, l)| {
+                l.nodes
+                    .iter()
+                    .position(|n| n.camera.is_some())
+                    .map(|ni| CameraChoice::Node {
+                        layer: li,
+                        node: ni,
+                    })
+            }),
+        };
+        Ok(Scene {
+            layers,
+            materials,
+            textures,
+            camera,
+        })
+    }
+
+    /// All warnings gathered while loading.
+    pub fn warnings(&self) -> Vec<String> {
+        self.layers
+            .iter()
+            .flat_map(|l| l.warnings.iter().cloned())
+            .collect()
+    }
+
+    /// Animation time range over all layers.
+    pub fn time_range(&self) -> Option<(f32, f32)> {
+        self.layers
+            .iter()
+            .filter_map(Layer::time_range)
+            .reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
+    }
+
+    /// World-space triangles of every prim with the given motion at time `t`: skinning
+    /// (glTF §3.7.3) and morph targets (§3.7.2.2) applied.
+    pub fn geometry(&self, t: f32, motion: Motion) -> Geometry {
+        let mut g = Geometry::default();
+        let mut prim_base = 0u32;
+        for layer in &self.layers {
+            let world = layer.world_matrices(t);
+            let anim = layer.samplers();
+            for (i, node) in layer.nodes.iter().enumerate() {
+                let Some(m) = node.mesh else { continue };
+                if node.motion != motion {
+                    continue;
+                }
+                let weights = layer.morph_weights(i, t, &anim);
+                let joints: Option<Vec<Mat4>> = node.skin.map(|s| {
+                    let skin = &layer.skins[s];
+                    skin.joints
+                        .iter()
+                        .zip(&skin.inverse_bind)
+                        .map(|(&j, ib)| world[j] * *ib)
+                        .collect()
+                });
+                for p in &layer.meshes[m].primitives {
+                    g.push_primitive(
+                        p,
+                        world[i],
+                        joints.as_deref(),
+                        &weights,
+                        prim_base + i as u32,
+                    );
+                }
+            }
+            prim_base += layer.nodes.len() as u32;
+        }
+        g
+    }
+
+    /// Punctual lights in world space at time `t`.
+    pub fn lights(&self, t: f32) -> Vec<PunctualLight> {
+        let mut out = Vec::new();
+        for layer in &self.layers {
+            let world = layer.world_matrices(t);
+            for (i, node) in layer.nodes.iter().enumerate() {
+                if let Some(l) = node.light {
+                    out.push(PunctualLight::new(&layer.lights[l], world[i]));
+                }
+            }
+        }
+        out
+    }
+
+    /// The job's camera at time `t` for an image of `aspect` = width / height.
+    pub fn camera_at(&self, t: f32, aspect: f32) -> FrameCamera {
+        match self.camera.as_ref().expect("Scene::load requires a camera") {
+            CameraChoice::Node { layer, node } => {
+                let l = &self.layers[*layer];
+                let world = l.world_matrices(t)[*node];
+                let cam = &l.cameras[l.nodes[*node].camera.expect("camera node")];
+                FrameCamera::from_matrix(world, cam.projection, aspect)
+            }
+            CameraChoice::Job(CameraFile::LookAt {
+                position,
+                look_at,
+                up,
+                yfov_deg,
+            }) => FrameCamera::look_at(
+                Vec3::from(*position),
+                Vec3::from(*look_at),
+                Vec3::from(*up),
+                yfov_deg.to_radians(),
+                aspect,
+            ),
+            CameraChoice::Job(CameraFile::Node { .. }) => unreachable!("resolved in Scene::load"),
+        }
+    }
+
+    /// Static prims with their BVH. Static prims do not move (tag resolution enforces it), so
+    /// this is evaluated once per render, at any time.
+    pub fn statics(&self) -> StaticSet {
+        StaticSet::new(self.geometry(0.0, Motion::Static))
+    }
+
+    /// The render-ready scene at time `t`, sharing the static set.
+    pub fn evaluate(&self, t: f32, aspect: f32, statics: &StaticSet) -> FrameScene {
+        FrameScene::new(
+            statics,
+            self.geometry(t, Motion::Dynamic),
+            self.lights(t),
+            self.camera_at(t, aspect),
+            &self.materials,
+        )
+    }
+}

@@ -1,0 +1,6 @@
+mod cli;
+pub mod common;
+mod lighting;
+mod python;
+mod scenes;
+mod tags;
