@@ -109,8 +109,8 @@ pub fn report(job: &Job, scene: &Scene) -> String {
             let _ = writeln!(
                 s,
                 "time range: {t0:.4}..{t1:.4} s = frames {:.0}..{:.0} at {} fps (frame_offset {})",
-                (t0 as f64 * job.fps + job.frame_offset).ceil(),
-                (t1 as f64 * job.fps + job.frame_offset).floor(),
+                job.frames_in(t0, t1).0,
+                job.frames_in(t0, t1).1,
                 job.fps,
                 job.frame_offset
             );

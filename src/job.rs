@@ -371,6 +371,13 @@ impl Job {
         ((frame as f64 - self.frame_offset) / self.fps) as f32
     }
 
+    /// First and last whole frame whose times lie in `[t0, t1]`, with a thousandth of a frame
+    /// of slack for key times stored as f32 (Blender writes frame 1 at 1/24 s).
+    pub fn frames_in(&self, t0: f32, t1: f32) -> (f64, f64) {
+        let frame = |t: f32| t as f64 * self.fps + self.frame_offset;
+        ((frame(t0) - 1e-3).ceil(), (frame(t1) + 1e-3).floor())
+    }
+
     /// Path of a frame's EXR; its stats and preview share the stem.
     pub fn frame_path(&self, frame: i32, ext: &str) -> PathBuf {
         self.out_dir

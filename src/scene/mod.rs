@@ -403,8 +403,8 @@ impl Scene {
                             "frame {f} (t = {t:.4} s at {} fps, frame_offset {}) is outside the animation, which spans t = {t0:.4}..{t1:.4} s (frames {:.0}..{:.0})",
                             job.fps,
                             job.frame_offset,
-                            (t0 as f64 * job.fps + job.frame_offset).ceil(),
-                            (t1 as f64 * job.fps + job.frame_offset).floor()
+                            job.frames_in(t0, t1).0,
+                            job.frames_in(t0, t1).1
                         ),
                     ));
                 }

@@ -199,3 +199,22 @@ fn example_scene_tags() {
     assert_eq!(by_name("cube").motion, Motion::Dynamic);
     assert_eq!(by_name("cube").why, TagSource::Extras);
 }
+
+/// A real Blender 3.4 export (`tests/data/blender/make.py`, run with `blender -b --python`):
+/// object custom properties `motion` arrive as tags, other custom properties are ignored, and
+/// Blender's frame numbers map to the animation's times with the default `frame_offset`.
+#[test]
+fn blender_export_custom_properties_are_tags() {
+    let path = root().join("tests/data/blender/blend.gltf");
+    let o = run(&["inspect", path.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for want in [
+        r#""Floor"                  static   2 triangles  (tagged in extras)"#,
+        r#""Mover"                  dynamic  12 triangles  (tagged in extras)"#,
+        r#""Untagged"               static   960 triangles  (untagged, not animated)"#,
+        "frames 1..24 at 24 fps",
+    ] {
+        assert!(text.contains(want), "missing {want:?} in\n{text}");
+    }
+}
