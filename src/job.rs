@@ -12,6 +12,7 @@ use glam::{EulerRot, Mat4, Quat, Vec3};
 use serde::Deserialize;
 
 use crate::error::{Error, Result};
+use crate::gi::{GiParams, Preset};
 use crate::scene::Motion;
 
 /// The job file as written on disk.
@@ -173,21 +174,126 @@ impl Default for RenderSettings {
     }
 }
 
-/// The global-illumination method. Only direct lighting exists so far; the photon-mapping
-/// methods of the paper (`anchors`, `brute-force`, `precomputed`, `path-trace`) add their
-/// names and parameters here.
+/// The global-illumination method (`--method` on the command line).
 #[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
     /// Emission and direct lighting only; no indirect light.
     #[default]
     Direct,
+    /// Photon map + irradiance cache, every stratum re-gathered every frame (paper Table 1).
+    BruteForce,
+    /// As brute force, with irradiance precomputed at a quarter of the photons (Christensen 1999).
+    Precomputed,
+    /// Unbiased path tracing with next-event estimation: the reference.
+    PathTrace,
 }
 
+impl Method {
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Direct => "direct",
+            Method::BruteForce => "brute-force",
+            Method::Precomputed => "precomputed",
+            Method::PathTrace => "path-trace",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Method> {
+        [
+            Method::Direct,
+            Method::BruteForce,
+            Method::Precomputed,
+            Method::PathTrace,
+        ]
+        .into_iter()
+        .find(|m| m.name() == s)
+    }
+}
+
+/// Method settings: a preset, then any of its values overridden. Defaults are the
+/// `production` preset's (README.md lists them with what each costs and buys).
 #[derive(Debug, Clone, Copy, Default, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MethodSettings {
     pub name: Method,
+    pub preset: Preset,
+    pub photons: Option<u32>,
+    pub k: Option<u32>,
+    pub strata: Option<[u32; 2]>,
+    pub error: Option<f32>,
+    pub min_spacing_px: Option<f32>,
+    pub max_spacing_px: Option<f32>,
+    pub max_age: Option<u32>,
+    pub path_samples: Option<u32>,
+    pub path_depth: Option<u32>,
+}
+
+impl MethodSettings {
+    /// The preset with this file's overrides applied.
+    pub fn params(&self) -> GiParams {
+        let mut p = GiParams::preset(self.preset);
+        if let Some(v) = self.photons {
+            p.photons = v;
+        }
+        if let Some(v) = self.k {
+            p.k = v;
+        }
+        if let Some(v) = self.strata {
+            p.cache.strata = v;
+        }
+        if let Some(v) = self.error {
+            p.cache.error = v;
+        }
+        if let Some(v) = self.min_spacing_px {
+            p.cache.min_spacing_px = v;
+        }
+        if let Some(v) = self.max_spacing_px {
+            p.cache.max_spacing_px = v;
+        }
+        if let Some(v) = self.max_age {
+            p.cache.max_age = v;
+        }
+        if let Some(v) = self.path_samples {
+            p.path_samples = v;
+        }
+        if let Some(v) = self.path_depth {
+            p.path_depth = v;
+        }
+        p
+    }
+
+    fn validate(&self, path: &Path) -> Result<()> {
+        let p = self.params();
+        let bad = |key: &str, msg: &str| {
+            Err(Error::input(path, format!("method.{key}"), msg.to_string()))
+        };
+        if p.photons == 0 || p.photons > 100_000_000 {
+            return bad("photons", "must be 1..=100000000");
+        }
+        if p.k == 0 || p.k > 1000 {
+            return bad("k", "must be 1..=1000");
+        }
+        if p.cache.strata.iter().any(|&s| s == 0 || s > 256) {
+            return bad("strata", "must be two numbers in 1..=256");
+        }
+        if !(p.cache.error > 0.0 && p.cache.error <= 2.0) {
+            return bad("error", "must be in (0, 2]");
+        }
+        if !(p.cache.min_spacing_px > 0.0
+            && p.cache.min_spacing_px <= p.cache.max_spacing_px
+            && p.cache.max_spacing_px.is_finite())
+        {
+            return bad("min_spacing_px", "must be > 0 and <= max_spacing_px");
+        }
+        if p.path_samples == 0 || p.path_samples > 1 << 20 {
+            return bad("path_samples", "must be 1..=1048576");
+        }
+        if p.path_depth == 0 || p.path_depth > 40 {
+            return bad("path_depth", "must be 1..=40");
+        }
+        Ok(())
+    }
 }
 
 /// Command-line overrides, applied to the job file in one place ([`Job::load`]).
@@ -195,6 +301,7 @@ pub struct MethodSettings {
 pub struct Overrides {
     pub frames: Option<FrameRange>,
     pub out_dir: Option<PathBuf>,
+    pub method: Option<Method>,
 }
 
 /// A validated job: paths resolved, ranges checked.
@@ -285,6 +392,11 @@ impl Job {
                 "must be 1..=1024",
             ));
         }
+        let mut method = file.method;
+        if let Some(m) = overrides.method {
+            method.name = m;
+        }
+        method.validate(path)?;
         let mut layers = Vec::new();
         for (i, l) in file.scene.iter().enumerate() {
             let m = l.transform.matrix();
@@ -362,7 +474,7 @@ impl Job {
             name,
             seed: file.seed,
             render: rs,
-            method: file.method,
+            method,
         })
     }
 

@@ -10,7 +10,9 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod accel;
+pub mod compare;
 pub mod error;
+pub mod gi;
 pub mod inspect;
 pub mod job;
 pub mod output;

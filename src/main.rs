@@ -32,6 +32,9 @@ enum Command {
         /// Output directory, overriding the job's `output.directory`.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Method, overriding the job's `method.name`: direct, brute-force, precomputed, path-trace.
+        #[arg(long)]
+        method: Option<String>,
         /// Worker threads (default: all cores). The output does not depend on it.
         #[arg(long)]
         threads: Option<usize>,
@@ -44,6 +47,32 @@ enum Command {
     },
     /// Describe a scene (.gltf/.glb) or a job: prims with tags and why, lights, cameras, time range.
     Inspect { path: PathBuf },
+    /// Render frames with several methods and presets and measure time, error against a
+    /// reference, and flicker: a table on stdout, compare.json and compare.png.
+    Compare {
+        job: PathBuf,
+        /// Comma-separated methods to measure.
+        #[arg(long, default_value = "brute-force,precomputed")]
+        methods: String,
+        /// Comma-separated presets each method runs at (default: the job's preset).
+        #[arg(long)]
+        presets: Option<String>,
+        /// The reference method.
+        #[arg(long, default_value = "path-trace")]
+        reference: String,
+        /// The reference's preset (default: the job's preset).
+        #[arg(long)]
+        reference_preset: Option<String>,
+        /// Inclusive frame range `A-B` (or one frame `A`), overriding the job's `frames`.
+        #[arg(long)]
+        frames: Option<String>,
+        /// Where compare.json and compare.png go (default: the job's output directory).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
     /// Check a job and its scenes without rendering.
     Validate { job: PathBuf },
 }
@@ -65,6 +94,26 @@ fn parse_frames(s: &str) -> Result<FrameRange, Error> {
         return Err(bad());
     }
     Ok(FrameRange { start, end })
+}
+
+fn set_threads(threads: Option<usize>) -> Result<(), Error> {
+    if let Some(n) = threads {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global()
+            .map_err(|e| Error::Render(e.to_string()))?;
+    }
+    Ok(())
+}
+
+fn parse_method(s: &str) -> Result<anchorage::job::Method, Error> {
+    anchorage::job::Method::parse(s).ok_or_else(|| {
+        Error::input(
+            "--method",
+            s,
+            "expected direct, brute-force, precomputed or path-trace",
+        )
+    })
 }
 
 /// A job wrapping a bare scene file, for `inspect SCENE.gltf`.
@@ -94,6 +143,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             job,
             frames,
             out,
+            method,
             threads,
             preview,
             quiet,
@@ -101,13 +151,9 @@ fn run(cli: Cli) -> Result<(), Error> {
             let overrides = Overrides {
                 frames: frames.as_deref().map(parse_frames).transpose()?,
                 out_dir: out,
+                method: method.as_deref().map(parse_method).transpose()?,
             };
-            if let Some(n) = threads {
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n.max(1))
-                    .build_global()
-                    .map_err(|e| Error::Render(e.to_string()))?;
-            }
+            set_threads(threads)?;
             let job = Job::load(&job, &overrides)?;
             let scene = Scene::load(&job)?;
             for w in scene.warnings() {
@@ -122,6 +168,61 @@ fn run(cli: Cli) -> Result<(), Error> {
                 },
             };
             pipeline::render_job(&job, &scene, opts)?;
+            Ok(())
+        }
+        Command::Compare {
+            job,
+            methods,
+            presets,
+            reference,
+            reference_preset,
+            frames,
+            out,
+            threads,
+        } => {
+            set_threads(threads)?;
+            let overrides = Overrides {
+                frames: frames.as_deref().map(parse_frames).transpose()?,
+                out_dir: out,
+                method: None,
+            };
+            let job = Job::load(&job, &overrides)?;
+            let preset = |s: &str| {
+                anchorage::compare::parse_preset(s).ok_or_else(|| {
+                    Error::input("--presets", s, "expected draft, production or final")
+                })
+            };
+            let presets = match presets {
+                Some(p) => p
+                    .split(',')
+                    .map(|s| preset(s.trim()))
+                    .collect::<Result<Vec<_>, _>>()?,
+                None => vec![job.method.preset],
+            };
+            let mut variants = Vec::new();
+            for m in methods.split(',') {
+                let method = parse_method(m.trim())?;
+                for &preset in &presets {
+                    variants.push(anchorage::compare::Variant { method, preset });
+                }
+            }
+            let reference = anchorage::compare::Variant {
+                method: parse_method(&reference)?,
+                preset: match reference_preset {
+                    Some(p) => preset(&p)?,
+                    None => job.method.preset,
+                },
+            };
+            let scene = Scene::load(&job)?;
+            anchorage::output::check_output_dir(&job.out_dir)?;
+            let report = anchorage::compare::compare(&job, &scene, &variants, reference);
+            print!("{}", anchorage::compare::table(&report));
+            anchorage::compare::write(&job.out_dir, &report)?;
+            println!(
+                "wrote {} and {}",
+                job.out_dir.join("compare.json").display(),
+                job.out_dir.join("compare.png").display()
+            );
             Ok(())
         }
         Command::Inspect { path } => {

@@ -12,7 +12,19 @@ use crate::error::{Error, Result};
 use crate::render::FrameImage;
 
 /// Channels of the EXR, as written (the file stores them sorted by name).
-pub const CHANNELS: &[&str] = &["R", "G", "B", "A", "direct.R", "direct.G", "direct.B", "Z"];
+pub const CHANNELS: &[&str] = &[
+    "R",
+    "G",
+    "B",
+    "A",
+    "direct.R",
+    "direct.G",
+    "direct.B",
+    "indirect.R",
+    "indirect.G",
+    "indirect.B",
+    "Z",
+];
 
 /// Writes `bytes` through `write` to a temporary file beside `path`, then renames it.
 pub fn write_atomic(
@@ -64,6 +76,9 @@ pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
         ch("direct.R", plane(&|i| img.direct[i][0])),
         ch("direct.G", plane(&|i| img.direct[i][1])),
         ch("direct.B", plane(&|i| img.direct[i][2])),
+        ch("indirect.R", plane(&|i| img.indirect[i][0])),
+        ch("indirect.G", plane(&|i| img.indirect[i][1])),
+        ch("indirect.B", plane(&|i| img.indirect[i][2])),
         ch("Z", img.depth.clone()),
     ];
     let layer = Layer::new(

@@ -8,6 +8,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::Result;
+use crate::gi::{self, Session};
 use crate::job::{Job, Method};
 use crate::output;
 use crate::render::{self, FrameImage, Materials};
@@ -21,6 +22,14 @@ pub struct Timings {
     /// Evaluating static prims and building their BVH (first frame of a render only).
     pub static_bvh: f64,
     pub dynamic_bvh: f64,
+    /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
+    /// gather hits, or precomputation), final gathering (tracing gather rays) and cache
+    /// interpolation (shading from the cache). Zero for methods without that stage.
+    pub photon_tracing: f64,
+    pub irradiance_estimation: f64,
+    pub final_gathering: f64,
+    pub cache_interpolation: f64,
+    /// Direct light at camera hits (for `path-trace`: the whole path tracing).
     pub direct_lighting: f64,
     pub output: f64,
     pub total: f64,
@@ -35,6 +44,14 @@ pub struct Counts {
     pub pixels: u64,
     pub camera_rays: u64,
     pub shadow_rays: u64,
+    /// Photons stored this frame.
+    pub photons: u64,
+    /// Irradiance cache records in use this frame.
+    pub caches: u64,
+    /// Final-gather rays traced this frame.
+    pub rays_shot: u64,
+    /// Pixel samples no cache record covered, gathered on the spot.
+    pub uncached_samples: u64,
 }
 
 #[derive(Debug, Clone, Default, Serialize)]
@@ -74,11 +91,13 @@ pub struct RenderOptions {
     pub progress: Progress,
 }
 
-/// Renders one frame in memory: the AOVs and the stats (no files written).
+/// Renders one frame in memory: the AOVs and the stats (no files written). `session` carries
+/// the irradiance cache from frame to frame.
 pub fn render_frame(
     job: &Job,
     scene: &Scene,
     statics: &StaticSet,
+    session: &mut Session,
     frame: i32,
     stats: &mut FrameStats,
 ) -> FrameImage {
@@ -100,12 +119,58 @@ pub fn render_frame(
         textures: &scene.textures,
     };
     let start = Instant::now();
+    let params = job.method.params();
+    let rs = &job.render;
     let (img, rc) = match job.method.name {
         Method::Direct => {
-            render::render_direct(&fs, m, &job.render, job.width, job.height, job.seed, frame)
+            let r = render::render_direct(&fs, m, rs, job.width, job.height, job.seed, frame);
+            stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
+            r
+        }
+        Method::BruteForce | Method::Precomputed => {
+            let pre = job.method.name == Method::Precomputed;
+            let (img, rc, gs) = gi::render_cached(
+                &fs,
+                m,
+                session,
+                &params,
+                pre,
+                rs.samples_per_pixel,
+                rs.light_samples,
+                job.width,
+                job.height,
+                job.seed,
+                frame,
+            );
+            let t = &mut stats.timings_s;
+            t.photon_tracing = gs.photon_tracing;
+            t.irradiance_estimation = gs.irradiance_estimation;
+            t.final_gathering = gs.final_gathering;
+            t.cache_interpolation = gs.cache_interpolation;
+            t.direct_lighting = gs.direct_lighting;
+            let c = &mut stats.counts;
+            c.photons = gs.photons;
+            c.caches = gs.caches;
+            c.rays_shot = gs.rays_shot;
+            c.uncached_samples = gs.uncached_samples;
+            (img, rc)
+        }
+        Method::PathTrace => {
+            let r = gi::path_trace(
+                &fs,
+                m,
+                params.path_samples,
+                params.path_depth,
+                rs.light_samples,
+                job.width,
+                job.height,
+                job.seed,
+                frame,
+            );
+            stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
+            r
         }
     };
-    stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
     let c = &mut stats.counts;
     c.triangles_static = fs.static_geometry.len() as u64;
     c.triangles_dynamic = fs.dynamic_geometry.len() as u64;
@@ -123,15 +188,17 @@ pub fn render_frame(
     img
 }
 
-fn new_stats(job: &Job, frame: i32) -> FrameStats {
+/// Stats of `frame` with every number zero.
+pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
     FrameStats {
         frame,
         time: job.time_of(frame),
-        method: match job.method.name {
-            Method::Direct => "direct",
-        },
+        method: job.method.name.name(),
         resolution: [job.width, job.height],
-        samples_per_pixel: job.render.samples_per_pixel,
+        samples_per_pixel: match job.method.name {
+            Method::PathTrace => job.method.params().path_samples,
+            _ => job.render.samples_per_pixel,
+        },
         timings_s: Timings::default(),
         counts: Counts::default(),
         memory: Memory::default(),
@@ -158,13 +225,14 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         b
     });
     let mut all = Vec::new();
+    let mut session = Session::default();
     for (i, &frame) in frames.iter().enumerate() {
         let t0 = Instant::now();
         let mut stats = new_stats(job, frame);
         if i == 0 {
             stats.timings_s.static_bvh = static_time;
         }
-        let img = render_frame(job, scene, &statics, frame, &mut stats);
+        let img = render_frame(job, scene, &statics, &mut session, frame, &mut stats);
         let t_out = Instant::now();
         let exr = job.frame_path(frame, "exr");
         output::write_exr(&exr, &img)?;
@@ -180,12 +248,14 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
                 b.inc(1);
             }
             None if opts.progress == Progress::Auto => eprintln!(
-                "anchorage: frame {frame} ({}/{}) {:.2} s, {} camera rays, {} shadow rays -> {}",
+                "anchorage: frame {frame} ({}/{}) {:.2} s, {} camera rays, {} shadow rays, {} gather rays, {} caches -> {}",
                 i + 1,
                 frames.len(),
                 stats.timings_s.total,
                 stats.counts.camera_rays,
                 stats.counts.shadow_rays,
+                stats.counts.rays_shot,
+                stats.counts.caches,
                 exr.display()
             ),
             None => {}

@@ -198,6 +198,8 @@ pub struct FrameImage {
     /// Premultiplied RGBA: emission + direct (+ indirect, later), alpha = coverage.
     pub beauty: Vec<[f32; 4]>,
     pub direct: Vec<[f32; 3]>,
+    /// Light reflected at least twice (final gather or path tracing); zero for `direct`.
+    pub indirect: Vec<[f32; 3]>,
     /// Camera-space depth along the view axis of the nearest hit; `f32::MAX` where nothing is hit.
     pub depth: Vec<f32>,
 }
@@ -208,11 +210,121 @@ pub struct RenderCounts {
     pub shadow_rays: u64,
 }
 
-/// One rendered row: beauty, direct, depth, counts.
-type Row = (Vec<[f32; 4]>, Vec<[f32; 3]>, Vec<f32>, RenderCounts);
+/// One pixel's AOVs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Pixel {
+    pub beauty: [f32; 4],
+    pub direct: [f32; 3],
+    pub indirect: [f32; 3],
+    pub depth: f32,
+}
 
-/// Renders emission and direct lighting (`method: direct`). Deterministic for any thread
-/// count: each pixel is a pure function of its inputs and rows are joined in order.
+/// Sums a pixel's samples: emission, direct and indirect radiance, coverage and depth.
+#[derive(Debug, Clone, Copy)]
+pub struct Accumulator {
+    emission: Vec3,
+    direct: Vec3,
+    indirect: Vec3,
+    hits: f32,
+    depth: f32,
+}
+
+impl Default for Accumulator {
+    fn default() -> Self {
+        Accumulator {
+            emission: Vec3::ZERO,
+            direct: Vec3::ZERO,
+            indirect: Vec3::ZERO,
+            hits: 0.0,
+            depth: f32::MAX,
+        }
+    }
+}
+
+impl Accumulator {
+    /// A camera sample that hit a surface at view-axis `depth`.
+    pub fn hit(&mut self, depth: f32, emission: Vec3, direct: Vec3, indirect: Vec3) {
+        self.hits += 1.0;
+        self.depth = self.depth.min(depth);
+        self.emission += emission;
+        self.direct += direct;
+        self.indirect += indirect;
+    }
+
+    /// Adds radiance to a sample already counted by [`Accumulator::hit`].
+    pub fn add(&mut self, direct: Vec3, indirect: Vec3) {
+        self.direct += direct;
+        self.indirect += indirect;
+    }
+
+    /// The box-filtered pixel over `spp` samples (misses count as black, transparent).
+    /// A non-finite sum (which no valid input produces) becomes black rather than poisoning
+    /// compositing.
+    pub fn finish(&self, spp: u32) -> Pixel {
+        let inv = 1.0 / spp as f32;
+        let f = |v: Vec3| {
+            let v = v * inv;
+            if v.is_finite() { v } else { Vec3::ZERO }
+        };
+        let (e, d, i) = (f(self.emission), f(self.direct), f(self.indirect));
+        let b = e + d + i;
+        Pixel {
+            beauty: [b.x, b.y, b.z, self.hits * inv],
+            direct: d.to_array(),
+            indirect: i.to_array(),
+            depth: self.depth,
+        }
+    }
+}
+
+/// Renders every pixel with `shade(x, y, row_state)` in parallel rows, joined in order, so
+/// the image does not depend on the thread count. Returns the image and each row's state.
+pub fn render_rows<S: Default + Send>(
+    width: u32,
+    height: u32,
+    shade: impl Fn(u32, u32, &mut S) -> Pixel + Sync,
+) -> (FrameImage, Vec<S>) {
+    let rows: Vec<(Vec<Pixel>, S)> = (0..height)
+        .into_par_iter()
+        .map(|y| {
+            let mut state = S::default();
+            let row = (0..width).map(|x| shade(x, y, &mut state)).collect();
+            (row, state)
+        })
+        .collect();
+    let n = (width * height) as usize;
+    let mut img = FrameImage {
+        width,
+        height,
+        beauty: Vec::with_capacity(n),
+        direct: Vec::with_capacity(n),
+        indirect: Vec::with_capacity(n),
+        depth: Vec::with_capacity(n),
+    };
+    let mut states = Vec::with_capacity(height as usize);
+    for (row, state) in rows {
+        for p in row {
+            img.beauty.push(p.beauty);
+            img.direct.push(p.direct);
+            img.indirect.push(p.indirect);
+            img.depth.push(p.depth);
+        }
+        states.push(state);
+    }
+    (img, states)
+}
+
+impl RenderCounts {
+    pub fn sum<'a>(all: impl IntoIterator<Item = &'a RenderCounts>) -> RenderCounts {
+        all.into_iter()
+            .fold(RenderCounts::default(), |a, c| RenderCounts {
+                camera_rays: a.camera_rays + c.camera_rays,
+                shadow_rays: a.shadow_rays + c.shadow_rays,
+            })
+    }
+}
+
+/// Renders emission and direct lighting (`method: direct`).
 pub fn render_direct(
     frame: &FrameScene,
     m: Materials,
@@ -223,72 +335,43 @@ pub fn render_direct(
     frame_number: i32,
 ) -> (FrameImage, RenderCounts) {
     let spp = settings.samples_per_pixel;
-    let rows: Vec<Row> = (0..height)
-        .into_par_iter()
-        .map(|y| {
-            let mut beauty = Vec::with_capacity(width as usize);
-            let mut direct = Vec::with_capacity(width as usize);
-            let mut depth = Vec::with_capacity(width as usize);
-            let mut counts = RenderCounts::default();
-            for x in 0..width {
-                let pixel = y * width + x;
-                let sampler = Sampler::new(seed, frame_number, 0, pixel);
-                let (mut rgb, mut dir, mut alpha, mut z) =
-                    (Vec3::ZERO, Vec3::ZERO, 0.0f32, f32::MAX);
-                for s in 0..spp {
-                    let [jx, jy] = sampler.get2(s, 0);
-                    let (o, d) = frame.camera.ray(
-                        (x as f32 + jx) / width as f32,
-                        (y as f32 + jy) / height as f32,
-                    );
-                    counts.camera_rays += 1;
-                    let Some(hit) = frame.accel.closest(
-                        &frame.static_geometry,
-                        &frame.dynamic_geometry,
-                        o,
-                        d,
-                        f32::INFINITY,
-                    ) else {
-                        continue;
-                    };
-                    let sp = SurfacePoint::new(frame, hit, o, d);
-                    alpha += 1.0;
-                    z = z.min(hit.t * d.dot(frame.camera.forward));
-                    let e = direct_irradiance(
-                        frame,
-                        &sp,
-                        &sampler,
-                        s,
-                        settings.light_samples,
-                        2,
-                        &mut counts.shadow_rays,
-                    );
-                    let l_direct = sp.albedo(m) * std::f32::consts::FRAC_1_PI * e;
-                    dir += l_direct;
-                    rgb += l_direct + sp.emission(m);
-                }
-                let inv = 1.0 / spp as f32;
-                let finite = |v: Vec3| if v.is_finite() { v } else { Vec3::ZERO };
-                let (rgb, dir) = (finite(rgb * inv), finite(dir * inv));
-                beauty.push([rgb.x, rgb.y, rgb.z, alpha * inv]);
-                direct.push(dir.to_array());
-                depth.push(z);
-            }
-            (beauty, direct, depth, counts)
-        })
-        .collect();
-    let mut img = FrameImage {
-        width,
-        height,
-        ..Default::default()
-    };
-    let mut counts = RenderCounts::default();
-    for (b, d, z, c) in rows {
-        img.beauty.extend(b);
-        img.direct.extend(d);
-        img.depth.extend(z);
-        counts.camera_rays += c.camera_rays;
-        counts.shadow_rays += c.shadow_rays;
-    }
-    (img, counts)
+    let (img, rows) = render_rows(width, height, |x, y, counts: &mut RenderCounts| {
+        let sampler = Sampler::new(seed, frame_number, 0, y * width + x);
+        let mut acc = Accumulator::default();
+        for s in 0..spp {
+            let [jx, jy] = sampler.get2(s, 0);
+            let (o, d) = frame.camera.ray(
+                (x as f32 + jx) / width as f32,
+                (y as f32 + jy) / height as f32,
+            );
+            counts.camera_rays += 1;
+            let Some(hit) = frame.accel.closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                d,
+                f32::INFINITY,
+            ) else {
+                continue;
+            };
+            let sp = SurfacePoint::new(frame, hit, o, d);
+            let e = direct_irradiance(
+                frame,
+                &sp,
+                &sampler,
+                s,
+                settings.light_samples,
+                2,
+                &mut counts.shadow_rays,
+            );
+            acc.hit(
+                hit.t * d.dot(frame.camera.forward),
+                sp.emission(m),
+                sp.albedo(m) * std::f32::consts::FRAC_1_PI * e,
+                Vec3::ZERO,
+            );
+        }
+        acc.finish(spp)
+    });
+    (img, RenderCounts::sum(&rows))
 }

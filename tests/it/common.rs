@@ -43,7 +43,14 @@ pub fn render(job: &Job, frame: i32) -> FrameImage {
     let scene = Scene::load(job).expect("scene loads");
     let statics = scene.statics();
     let mut stats = blank_stats();
-    pipeline::render_frame(job, &scene, &statics, frame, &mut stats)
+    pipeline::render_frame(
+        job,
+        &scene,
+        &statics,
+        &mut Default::default(),
+        frame,
+        &mut stats,
+    )
 }
 
 fn blank_stats() -> FrameStats {

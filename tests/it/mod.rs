@@ -1,5 +1,6 @@
 mod cli;
 pub mod common;
+mod gi;
 mod lighting;
 mod python;
 mod scenes;

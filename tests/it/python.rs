@@ -42,7 +42,19 @@ fn exr_channels_and_values_read_back_with_openexr() {
     names.sort();
     assert_eq!(
         names,
-        ["A", "B", "G", "R", "Z", "direct.B", "direct.G", "direct.R"]
+        [
+            "A",
+            "B",
+            "G",
+            "R",
+            "Z",
+            "direct.B",
+            "direct.G",
+            "direct.R",
+            "indirect.B",
+            "indirect.G",
+            "indirect.R"
+        ]
     );
     // Values equal an in-memory render of the same frame, bit for bit.
     let j = anchorage::job::Job::load(&job, &Default::default()).unwrap();

@@ -1,0 +1,598 @@
+//! The irradiance cache (Ward, Rubinstein & Clear 1988; the paper's §2.1, §4.1, §4.3):
+//! records placed on surfaces seen by the camera, each holding the irradiance from a
+//! stratified final gather over its hemisphere, the harmonic-mean distance to what the
+//! gather hit, translational and rotational gradients (Ward & Heckbert 1992), and its strata
+//! — distance, flags and incoming radiance per direction — which the anchor method reuses
+//! (§4.1 `RadianceSample`).
+//!
+//! Placement is deterministic and parallel: image-space grids from coarse to fine; at each
+//! level every grid pixel whose surface point no record covers gets a record, all records of
+//! a level are gathered in parallel and inserted in pixel order. Validity radii are clamped
+//! to a range of pixel footprints (Tabellion & Lamorlette 2004), so density follows the image.
+//!
+//! Gradients follow the stratified formulation of Ward & Heckbert for cosine-weighted
+//! strata (as given in Křivánek & Gautron, "Practical Global Illumination with Irradiance
+//! Caching", 2009, §2.2).
+
+use std::f32::consts::PI;
+
+use glam::Vec3;
+use kiddo::SquaredEuclidean;
+use kiddo::float::kdtree::KdTree;
+use rayon::prelude::*;
+
+use super::photons::basis;
+use crate::render::SurfacePoint;
+use crate::sampling::hash;
+use crate::scene::{FrameCamera, FrameScene, Motion, Projection};
+
+/// Stratum flag: the gather ray hit geometry.
+pub const HIT_ANY: u8 = 1;
+/// Stratum flag: the gather ray hit a dynamic prim.
+pub const HIT_DYNAMIC: u8 = 2;
+
+/// One gather direction of a record (the paper's `RadianceSample`, §4.1).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Stratum {
+    /// Distance to the hit; infinite on a miss.
+    pub distance: f32,
+    pub flags: u8,
+    /// Radiance arriving from this direction.
+    pub radiance: Vec3,
+}
+
+/// An irradiance cache record.
+#[derive(Debug, Clone)]
+pub struct Record {
+    pub position: Vec3,
+    pub normal: Vec3,
+    pub irradiance: Vec3,
+    /// Ward's R_i: harmonic-mean hit distance, clamped so that a·R_i lies between the
+    /// minimum and maximum spacing in pixel footprints.
+    pub radius: f32,
+    /// Rotational and translational gradients, per colour channel (R, G, B).
+    pub grad_r: [Vec3; 3],
+    pub grad_t: [Vec3; 3],
+    pub motion: Motion,
+    /// Seeds the record's stratum jitter: the same directions every frame.
+    pub id: u32,
+    /// Last frame in which the record contributed to a pixel (§4.3).
+    pub last_used: i32,
+    /// Pixel footprint at creation, for clamping the radius when re-gathered.
+    pub footprint: f32,
+    /// Ray-origin offset and geometric normal of the surface the record sits on.
+    pub offset: f32,
+    pub ng: Vec3,
+    pub strata: Vec<Stratum>,
+}
+
+/// Irradiance-cache settings ([`CacheParams::default`] = the `production` preset).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CacheParams {
+    /// Strata in θ (M) and φ (N); M·N gather rays per record. Default 12×36 = 432.
+    pub strata: [u32; 2],
+    /// Ward's error threshold a: a record is used where its weight exceeds 1/a. Default 0.25.
+    pub error: f32,
+    /// A record is valid out to a·R_i; that distance is clamped to [min, max] pixel
+    /// footprints. Defaults 2 and 24.
+    pub min_spacing_px: f32,
+    pub max_spacing_px: f32,
+    /// Frames a record may go unused before it is removed (§4.3). Default 2.
+    pub max_age: u32,
+}
+
+impl Default for CacheParams {
+    fn default() -> Self {
+        CacheParams {
+            strata: [12, 36],
+            error: 0.25,
+            min_spacing_px: 2.0,
+            max_spacing_px: 24.0,
+            max_age: 2,
+        }
+    }
+}
+
+/// Where a gather ray went, before its radiance is estimated.
+#[derive(Debug, Clone, Copy)]
+pub struct GatherHit {
+    pub sp: Option<SurfacePoint>,
+    pub distance: f32,
+}
+
+/// The cache with a kd-tree over record positions.
+pub struct IrradianceCache {
+    pub records: Vec<Record>,
+    tree: KdTree<f32, u64, 3, 64, u32>,
+    max_radius: f32,
+    next_id: u32,
+}
+
+impl Default for IrradianceCache {
+    fn default() -> Self {
+        IrradianceCache {
+            records: Vec::new(),
+            tree: KdTree::new(),
+            max_radius: 0.0,
+            next_id: 0,
+        }
+    }
+}
+
+/// World size of one pixel at `x` as seen by `camera` for an image `height` pixels tall.
+pub fn pixel_footprint(camera: &FrameCamera, x: Vec3, height: u32) -> f32 {
+    match camera.projection {
+        Projection::Perspective { yfov } => {
+            let depth = (x - camera.origin)
+                .dot(camera.forward)
+                .abs()
+                .max(f32::MIN_POSITIVE);
+            depth * 2.0 * (0.5 * yfov).tan() / height as f32
+        }
+        Projection::Orthographic { ymag } => 2.0 * ymag / height as f32,
+    }
+}
+
+/// Direction of stratum (j, k) with jitter (u, v): cosine-weighted, θ from j, φ from k.
+fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f32) {
+    let sin2 = (j as f32 + u) / m as f32;
+    let phi = 2.0 * PI * (k as f32 + v) / n as f32;
+    (sin2, phi)
+}
+
+impl IrradianceCache {
+    pub fn len(&self) -> usize {
+        self.records.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.records.is_empty()
+    }
+
+    /// Rebuilds the kd-tree (after records were removed).
+    fn rebuild_tree(&mut self) {
+        self.tree = KdTree::new();
+        self.max_radius = 0.0;
+        for (i, r) in self.records.iter().enumerate() {
+            self.tree.add(&r.position.to_array(), i as u64);
+            self.max_radius = self.max_radius.max(r.radius);
+        }
+    }
+
+    /// Drops dynamic records, and static ones unused for more than `max_age` frames (§4.3).
+    pub fn expire(&mut self, frame: i32, max_age: u32) {
+        self.records
+            .retain(|r| r.motion == Motion::Static && frame - r.last_used <= max_age as i32);
+        self.rebuild_tree();
+    }
+
+    fn insert(&mut self, r: Record) {
+        self.tree
+            .add(&r.position.to_array(), self.records.len() as u64);
+        self.max_radius = self.max_radius.max(r.radius);
+        self.records.push(r);
+    }
+
+    /// Ward's weight of record `r` at (x, n), or 0 where it must not be used: behind x, or
+    /// facing away. w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
+    fn weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
+        let ndot = n.dot(r.normal);
+        if ndot <= 0.0 {
+            return 0.0;
+        }
+        let d = x - r.position;
+        // Ward's "in front" test: reject records in front of x.
+        if d.dot(n + r.normal) * 0.5 < -0.05 * r.radius {
+            return 0.0;
+        }
+        let e = d.length() / r.radius + (1.0 - ndot).max(0.0).sqrt();
+        if e <= 0.0 { f32::MAX } else { 1.0 / e }
+    }
+
+    /// Interpolated irradiance at (x, n) from records whose weight exceeds 1/a, with
+    /// gradients; `None` where no record is valid. `used` receives contributing records.
+    pub fn interpolate(&self, x: Vec3, n: Vec3, a: f32, used: &mut Vec<u32>) -> Option<Vec3> {
+        if self.records.is_empty() {
+            return None;
+        }
+        let r2 = self.max_radius * self.max_radius * a * a;
+        let mut sum = Vec3::ZERO;
+        let mut wsum = 0.0f32;
+        let found = self
+            .tree
+            .within_unsorted::<SquaredEuclidean>(&x.to_array(), r2.max(f32::MIN_POSITIVE));
+        let mut idx: Vec<u64> = found.iter().map(|f| f.item).collect();
+        idx.sort_unstable(); // summation order independent of tree layout
+        for i in idx {
+            let r = &self.records[i as usize];
+            let w = Self::weight(r, x, n);
+            if w <= 1.0 / a {
+                continue;
+            }
+            let rot = r.normal.cross(n);
+            let dx = x - r.position;
+            let e = r.irradiance
+                + Vec3::new(
+                    rot.dot(r.grad_r[0]) + dx.dot(r.grad_t[0]),
+                    rot.dot(r.grad_r[1]) + dx.dot(r.grad_t[1]),
+                    rot.dot(r.grad_r[2]) + dx.dot(r.grad_t[2]),
+                );
+            sum += w * e.max(Vec3::ZERO);
+            wsum += w;
+            used.push(i as u32);
+        }
+        (wsum > 0.0).then(|| sum / wsum)
+    }
+
+    /// True if some record is valid at (x, n).
+    pub fn covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
+        if self.records.is_empty() {
+            return false;
+        }
+        let r2 = self.max_radius * self.max_radius * a * a;
+        self.tree
+            .within_unsorted::<SquaredEuclidean>(&x.to_array(), r2.max(f32::MIN_POSITIVE))
+            .iter()
+            .any(|f| Self::weight(&self.records[f.item as usize], x, n) > 1.0 / a)
+    }
+
+    /// Traces the gather rays of a record at (x, n): where each stratum's ray goes.
+    pub fn trace_strata(
+        frame: &FrameScene,
+        sp: &SurfacePoint,
+        id: u32,
+        p: &CacheParams,
+    ) -> Vec<GatherHit> {
+        let [m, n] = p.strata;
+        let (t, b) = basis(sp.ns);
+        let o = sp.spawn();
+        let mut out = Vec::with_capacity((m * n) as usize);
+        let seed = hash(&[id, 0x6a7e_0001]);
+        for j in 0..m {
+            for k in 0..n {
+                let s = j * n + k;
+                let u = sobol_burley::sample(s, 0, seed);
+                let v = sobol_burley::sample(s, 1, seed);
+                let (sin2, phi) = stratum_direction(m, n, j, k, u, v);
+                let st = sin2.sqrt();
+                let dir = (t * (st * phi.cos())
+                    + b * (st * phi.sin())
+                    + sp.ns * (1.0 - sin2).max(0.0).sqrt())
+                .normalize();
+                if dir.dot(sp.ng) <= 0.0 {
+                    out.push(GatherHit {
+                        sp: None,
+                        distance: f32::INFINITY,
+                    });
+                    continue;
+                }
+                match frame.accel.closest(
+                    &frame.static_geometry,
+                    &frame.dynamic_geometry,
+                    o,
+                    dir,
+                    f32::INFINITY,
+                ) {
+                    Some(h) => out.push(GatherHit {
+                        sp: Some(SurfacePoint::new(frame, h, o, dir)),
+                        distance: h.t,
+                    }),
+                    None => out.push(GatherHit {
+                        sp: None,
+                        distance: f32::INFINITY,
+                    }),
+                }
+            }
+        }
+        out
+    }
+
+    /// Completes a record from its strata: irradiance E = π/(MN) Σ L, harmonic-mean radius
+    /// clamped to [min, max] footprints, and gradients.
+    pub fn finish_record(
+        sp: &SurfacePoint,
+        motion: Motion,
+        id: u32,
+        footprint: f32,
+        strata: Vec<Stratum>,
+        p: &CacheParams,
+        frame: i32,
+    ) -> Record {
+        let [m, n] = p.strata;
+        let scale = PI / (m * n) as f32;
+        let irradiance = strata.iter().map(|s| s.radiance).sum::<Vec3>() * scale;
+        let inv: f32 = strata
+            .iter()
+            .filter(|s| s.distance.is_finite())
+            .map(|s| 1.0 / s.distance.max(f32::MIN_POSITIVE))
+            .sum();
+        let harmonic = if inv > 0.0 {
+            (m * n) as f32 / inv
+        } else {
+            f32::INFINITY
+        };
+        // Clamp so that the region where the record is valid (distance < a·R) spans between
+        // min and max pixel footprints (Tabellion & Lamorlette 2004).
+        let radius = harmonic.clamp(
+            p.min_spacing_px * footprint / p.error,
+            p.max_spacing_px * footprint / p.error,
+        );
+        let r_min = p.min_spacing_px * footprint / p.error;
+        let (grad_r, mut grad_t) = gradients(&strata, sp.ns, m, n, r_min);
+        // Gradient limiting (Křivánek et al. 2006): extrapolation across the region where the
+        // record is valid (a·R_i) may change each channel by at most its own value, so noisy
+        // radiance next to a corner cannot turn into a large gradient.
+        for c in 0..3 {
+            let limit = irradiance[c] / (p.error * radius).max(f32::MIN_POSITIVE);
+            let g = grad_t[c].length();
+            if g > limit {
+                grad_t[c] *= limit / g;
+            }
+        }
+        Record {
+            position: sp.position,
+            normal: sp.ns,
+            irradiance,
+            radius,
+            grad_r,
+            grad_t,
+            motion,
+            id,
+            last_used: frame,
+            footprint,
+            offset: sp.offset,
+            ng: sp.ng,
+            strata,
+        }
+    }
+
+    /// Re-gathers every record (brute force: every frame, every stratum).
+    pub fn regather(
+        &mut self,
+        frame: &FrameScene,
+        p: &CacheParams,
+        frame_number: i32,
+        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        timings: &mut GatherTimings,
+    ) {
+        let t0 = std::time::Instant::now();
+        let hits: Vec<Vec<GatherHit>> = self
+            .records
+            .par_iter()
+            .map(|r| {
+                let sp = record_point(r);
+                Self::trace_strata(frame, &sp, r.id, p)
+            })
+            .collect();
+        timings.final_gathering += t0.elapsed().as_secs_f64();
+        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        let t1 = std::time::Instant::now();
+        let updated: Vec<Record> = self
+            .records
+            .par_iter()
+            .zip(hits)
+            .map(|(r, h)| {
+                let sp = record_point(r);
+                let strata = estimate(&h, radiance);
+                let mut new =
+                    Self::finish_record(&sp, r.motion, r.id, r.footprint, strata, p, frame_number);
+                new.last_used = r.last_used;
+                new
+            })
+            .collect();
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        self.records = updated;
+        self.rebuild_tree();
+    }
+
+    /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
+    /// grids from `coarsest` down to 1.
+    #[allow(clippy::too_many_arguments)] // placement needs the view and the method
+    pub fn place(
+        &mut self,
+        frame: &FrameScene,
+        width: u32,
+        height: u32,
+        p: &CacheParams,
+        frame_number: i32,
+        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        timings: &mut GatherTimings,
+    ) {
+        let coarsest = 16u32;
+        let mut spacing = coarsest;
+        loop {
+            let level_first = spacing == coarsest;
+            let candidates: Vec<(u32, u32)> = (0..height)
+                .step_by(spacing as usize)
+                .flat_map(|y| (0..width).step_by(spacing as usize).map(move |x| (x, y)))
+                .filter(|&(x, y)| level_first || x % (2 * spacing) != 0 || y % (2 * spacing) != 0)
+                .collect();
+            let needed: Vec<(u32, SurfacePoint)> = candidates
+                .par_iter()
+                .filter_map(|&(x, y)| {
+                    let (o, d) = frame.camera.ray(
+                        (x as f32 + 0.5) / width as f32,
+                        (y as f32 + 0.5) / height as f32,
+                    );
+                    let h = frame.accel.closest(
+                        &frame.static_geometry,
+                        &frame.dynamic_geometry,
+                        o,
+                        d,
+                        f32::INFINITY,
+                    )?;
+                    let sp = SurfacePoint::new(frame, h, o, d);
+                    (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
+                })
+                .collect();
+            self.add_records(frame, &needed, height, p, frame_number, radiance, timings);
+            if spacing == 1 {
+                break;
+            }
+            spacing /= 2;
+        }
+    }
+
+    /// Gathers and inserts records at the given surface points (in order).
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_records(
+        &mut self,
+        frame: &FrameScene,
+        points: &[(u32, SurfacePoint)],
+        height: u32,
+        p: &CacheParams,
+        frame_number: i32,
+        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        timings: &mut GatherTimings,
+    ) {
+        if points.is_empty() {
+            return;
+        }
+        let first_id = self.next_id;
+        self.next_id += points.len() as u32;
+        let t0 = std::time::Instant::now();
+        let hits: Vec<Vec<GatherHit>> = points
+            .par_iter()
+            .enumerate()
+            .map(|(i, (_, sp))| Self::trace_strata(frame, sp, first_id + i as u32, p))
+            .collect();
+        timings.final_gathering += t0.elapsed().as_secs_f64();
+        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        let t1 = std::time::Instant::now();
+        let records: Vec<Record> = points
+            .par_iter()
+            .zip(hits)
+            .enumerate()
+            .map(|(i, ((_, sp), h))| {
+                let footprint = pixel_footprint(&frame.camera, sp.position, height);
+                let strata = estimate(&h, radiance);
+                Self::finish_record(
+                    sp,
+                    sp.hit.motion,
+                    first_id + i as u32,
+                    footprint,
+                    strata,
+                    p,
+                    frame_number,
+                )
+            })
+            .collect();
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        for r in records {
+            self.insert(r);
+        }
+    }
+
+    /// Marks records as used in `frame`.
+    pub fn touch(&mut self, used: &[u32], frame: i32) {
+        for &i in used {
+            self.records[i as usize].last_used = frame;
+        }
+    }
+}
+
+/// Seconds and rays spent gathering, split as in the paper's Table 1.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct GatherTimings {
+    /// Tracing gather rays.
+    pub final_gathering: f64,
+    /// Estimating radiance at gather hits (photon lookups).
+    pub irradiance_estimation: f64,
+    pub rays: u64,
+}
+
+/// A surface point at a record, for re-gathering from its own position and normal.
+fn record_point(r: &Record) -> SurfacePoint {
+    SurfacePoint {
+        position: r.position,
+        ng: r.ng,
+        ns: r.normal,
+        uv: glam::Vec2::ZERO,
+        offset: r.offset,
+        material: 0,
+        front: true,
+        hit: crate::accel::Hit {
+            t: 0.0,
+            motion: r.motion,
+            triangle: 0,
+        },
+    }
+}
+
+/// Strata from gather hits with radiance from `radiance` (the method's estimate).
+fn estimate(hits: &[GatherHit], radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync)) -> Vec<Stratum> {
+    hits.iter()
+        .map(|h| match &h.sp {
+            Some(sp) => Stratum {
+                distance: h.distance,
+                flags: HIT_ANY
+                    | if sp.hit.motion == Motion::Dynamic {
+                        HIT_DYNAMIC
+                    } else {
+                        0
+                    },
+                radiance: radiance(sp),
+            },
+            None => Stratum {
+                distance: f32::INFINITY,
+                flags: 0,
+                radiance: Vec3::ZERO,
+            },
+        })
+        .collect()
+}
+
+/// Rotational and translational irradiance gradients from cosine-weighted strata (Ward &
+/// Heckbert 1992, in the form of Křivánek & Gautron 2009, eqs. 2.13–2.14):
+///
+/// ∇_r E = π/(MN) Σ_k v_k Σ_j −tan θ_j L_jk
+/// ∇_t E = Σ_k [ u_k (2π/N) Σ_{j≥1} sin θ_j− cos² θ_j− / min(r_{j−1,k}, r_jk) (L_jk − L_{j−1,k})
+///             + v_k− Σ_j (sin θ_j+ − sin θ_j−) / min(r_jk, r_{j,k−1}) (L_jk − L_{j,k−1}) ]
+///
+/// Distances below `r_min` (the record's smallest radius) count as `r_min`: a gather ray that
+/// grazes a corner says little about how irradiance changes over the record's extent.
+fn gradients(strata: &[Stratum], n: Vec3, m: u32, nn: u32, r_min: f32) -> ([Vec3; 3], [Vec3; 3]) {
+    let (t, b) = basis(n);
+    let mut gr = [Vec3::ZERO; 3];
+    let mut gt = [Vec3::ZERO; 3];
+    let at = |j: u32, k: u32| &strata[(j * nn + (k % nn)) as usize];
+    for k in 0..nn {
+        let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
+        let phi_m = 2.0 * PI * k as f32 / nn as f32;
+        let u_k = t * phi_c.cos() + b * phi_c.sin();
+        let v_k = -t * phi_c.sin() + b * phi_c.cos();
+        let v_km = -t * phi_m.sin() + b * phi_m.cos();
+        let mut rot = Vec3::ZERO;
+        let mut theta_term = Vec3::ZERO;
+        let mut phi_term = Vec3::ZERO;
+        for j in 0..m {
+            let s = at(j, k);
+            let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
+            let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+            rot -= tan_c * s.radiance;
+            let sin_m = (j as f32 / m as f32).sqrt();
+            let sin_p = ((j + 1) as f32 / m as f32).sqrt();
+            if j > 0 {
+                let prev = at(j - 1, k);
+                let r = prev.distance.min(s.distance).max(r_min);
+                if r.is_finite() && r > 0.0 {
+                    let cos2 = 1.0 - sin_m * sin_m;
+                    theta_term += (sin_m * cos2 / r) * (s.radiance - prev.radiance);
+                }
+            }
+            let left = at(j, k + nn - 1);
+            let r = left.distance.min(s.distance).max(r_min);
+            if r.is_finite() && r > 0.0 {
+                phi_term += ((sin_p - sin_m) / r) * (s.radiance - left.radiance);
+            }
+        }
+        rot *= PI / (m * nn) as f32;
+        theta_term *= 2.0 * PI / nn as f32;
+        for c in 0..3 {
+            gr[c] += v_k * rot[c];
+            gt[c] += u_k * theta_term[c] + v_km * phi_term[c];
+        }
+    }
+    (gr, gt)
+}

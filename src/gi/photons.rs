@@ -1,0 +1,344 @@
+//! Photon tracing and the photon map (Jensen, "Realistic Image Synthesis Using Photon
+//! Mapping", 2001; the paper's §1, §3 and §4.2).
+//!
+//! Photons leave the lights in proportion to their power and are traced with a quasi-Monte
+//! Carlo sequence indexed by photon number, seeded by the job's seed but *not* by the frame:
+//! photon `i` follows the same path in every frame where the geometry it meets did not
+//! change, which the anchors rely on (§4.2, [Chr02]). Every diffuse hit stores the photon
+//! (the first hit included: final-gather hits need the direct illumination there too);
+//! Russian roulette by albedo decides whether it bounces on.
+//!
+//! The kd-tree is kiddo's immutable tree: a maintained crate doing exactly the k-nearest
+//! query the estimate needs.
+
+use std::f32::consts::PI;
+use std::num::NonZero;
+
+use glam::Vec3;
+use kiddo::SquaredEuclidean;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+
+use crate::accel::offset_of;
+use crate::render::{Materials, SurfacePoint};
+use crate::sampling::hash;
+use crate::scene::{FrameScene, LightKind};
+
+/// One stored photon.
+#[derive(Debug, Clone, Copy)]
+pub struct Photon {
+    pub position: Vec3,
+    /// Normal of the surface it landed on, on the side it arrived from.
+    pub normal: Vec3,
+    /// Flux carried (scene light units × area).
+    pub power: Vec3,
+}
+
+/// Photon map with its kd-tree.
+pub struct PhotonMap {
+    pub photons: Vec<Photon>,
+    tree: Option<ImmutableKdTree<f32, u32, 3, 32>>,
+    /// Photons emitted (the divisor of every photon's power).
+    pub emitted: u32,
+    /// Total flux emitted by all lights (luminance-weighted sum is what selection uses).
+    pub emitted_power: Vec3,
+}
+
+/// An emitting light as photon tracing sees it.
+enum Source {
+    Punctual(usize),
+    Emitter(usize),
+}
+
+/// A QMC sample stream for photon `i`: dimension `d` of the Owen-scrambled Sobol sequence.
+struct PhotonSampler {
+    seed: u32,
+    index: u32,
+}
+
+impl PhotonSampler {
+    fn get(&self, d: u32) -> f32 {
+        let set = d / sobol_burley::NUM_DIMENSIONS;
+        let seed = if set == 0 {
+            self.seed
+        } else {
+            hash(&[self.seed, set])
+        };
+        sobol_burley::sample(self.index, d % sobol_burley::NUM_DIMENSIONS, seed)
+    }
+}
+
+fn luminance(c: Vec3) -> f32 {
+    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
+}
+
+/// An orthonormal basis around `n` (Duff et al. 2017).
+pub fn basis(n: Vec3) -> (Vec3, Vec3) {
+    let s = 1.0f32.copysign(n.z);
+    let a = -1.0 / (s + n.z);
+    let b = n.x * n.y * a;
+    (
+        Vec3::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x),
+        Vec3::new(b, s + n.y * n.y * a, -n.y),
+    )
+}
+
+/// Cosine-weighted direction around `n` from two uniform numbers.
+pub fn cosine_direction(n: Vec3, u1: f32, u2: f32) -> Vec3 {
+    let (t, b) = basis(n);
+    let r = u1.sqrt();
+    let phi = 2.0 * PI * u2;
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
+}
+
+fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
+    let z = 1.0 - 2.0 * u1;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * PI * u2;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Centre and radius of a sphere bounding all geometry.
+pub fn bounding_sphere(frame: &FrameScene) -> (Vec3, f32) {
+    let mut lo = Vec3::splat(f32::MAX);
+    let mut hi = Vec3::splat(f32::MIN);
+    for g in [&*frame.static_geometry, &frame.dynamic_geometry] {
+        for t in &g.triangles {
+            for v in [t.v0, t.v1, t.v2] {
+                lo = lo.min(v.into());
+                hi = hi.max(v.into());
+            }
+        }
+    }
+    if lo.x > hi.x {
+        return (Vec3::ZERO, 1.0);
+    }
+    let c = 0.5 * (lo + hi);
+    (c, (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE))
+}
+
+impl PhotonMap {
+    /// Traces `count` photons from every light of `frame`. `seed` selects the sequence;
+    /// it must not depend on the frame for temporal coherence.
+    pub fn trace(
+        frame: &FrameScene,
+        m: Materials,
+        count: u32,
+        seed: u32,
+        max_bounces: u32,
+    ) -> PhotonMap {
+        let (centre, radius) = bounding_sphere(frame);
+        // Emitted flux per light.
+        let mut sources = Vec::new();
+        let mut power = Vec::new();
+        for (i, l) in frame.lights.iter().enumerate() {
+            let phi = match l.kind {
+                LightKind::Point => 4.0 * PI * l.intensity,
+                LightKind::Spot { outer, .. } => 2.0 * PI * (1.0 - outer.cos()) * l.intensity,
+                LightKind::Directional => PI * radius * radius * l.intensity,
+            };
+            sources.push(Source::Punctual(i));
+            power.push(phi);
+        }
+        for (i, e) in frame.emitters.list.iter().enumerate() {
+            let sides = if e.double_sided { 2.0 } else { 1.0 };
+            sources.push(Source::Emitter(i));
+            power.push(PI * e.radiance * e.area * sides);
+        }
+        let weights: Vec<f64> = power
+            .iter()
+            .map(|p| luminance(*p).max(0.0) as f64)
+            .collect();
+        let total: f64 = weights.iter().sum();
+        let emitted_power = power.iter().copied().sum();
+        let mut map = PhotonMap {
+            photons: Vec::new(),
+            tree: None,
+            emitted: count,
+            emitted_power,
+        };
+        if total <= 0.0 || count == 0 {
+            return map;
+        }
+        let mut cdf = Vec::with_capacity(weights.len());
+        let mut acc = 0.0;
+        for w in &weights {
+            acc += w;
+            cdf.push((acc / total) as f32);
+        }
+        let seed = hash(&[seed, 0x5eed_0001]);
+        use rayon::prelude::*;
+        let chunks: Vec<Vec<Photon>> = (0..count.div_ceil(4096))
+            .into_par_iter()
+            .map(|c| {
+                let mut out = Vec::new();
+                for i in c * 4096..((c + 1) * 4096).min(count) {
+                    let s = PhotonSampler { seed, index: i };
+                    let k = cdf
+                        .partition_point(|&x| x <= s.get(0))
+                        .min(sources.len() - 1);
+                    let p_pick = (weights[k] / total) as f32;
+                    let Some((o, dir, flux)) = emit(frame, &sources[k], &s, centre, radius) else {
+                        continue;
+                    };
+                    let flux = flux / (p_pick * count as f32);
+                    trace_path(frame, m, o, dir, flux, &s, max_bounces, &mut out);
+                }
+                out
+            })
+            .collect();
+        map.photons = chunks.into_iter().flatten().collect();
+        if !map.photons.is_empty() {
+            let pts: Vec<[f32; 3]> = map.photons.iter().map(|p| p.position.to_array()).collect();
+            map.tree = Some(ImmutableKdTree::new_from_slice(&pts));
+        }
+        map
+    }
+
+    /// Irradiance at `x` (normal `n`) from the `k` nearest photons whose surface normal
+    /// agrees with `n` (Jensen's estimate E = ΣΦ / πr², r the distance to the k-th photon).
+    pub fn irradiance(&self, x: Vec3, n: Vec3, k: usize) -> Vec3 {
+        let Some(tree) = &self.tree else {
+            return Vec3::ZERO;
+        };
+        let found = tree
+            .nearest_n::<SquaredEuclidean>(&x.to_array(), NonZero::new(k.max(1)).expect("k >= 1"));
+        // Photons on surfaces facing elsewhere (across a corner) do not count, but the disc
+        // still reaches the k-th photon: a radius set by the few accepted ones would be
+        // unstable where almost none are (Jensen 2001, §7.2).
+        let mut sum = Vec3::ZERO;
+        let mut r2: f32 = 0.0;
+        for nb in &found {
+            let p = &self.photons[nb.item as usize];
+            r2 = r2.max(nb.distance);
+            if p.normal.dot(n) > 0.5 {
+                sum += p.power;
+            }
+        }
+        if !(r2 > 0.0) {
+            return Vec3::ZERO;
+        }
+        sum / (PI * r2)
+    }
+
+    /// Index of the photon nearest to `x`, if any.
+    pub fn nearest(&self, x: Vec3) -> Option<usize> {
+        self.tree
+            .as_ref()
+            .map(|t| t.nearest_one::<SquaredEuclidean>(&x.to_array()).item as usize)
+    }
+
+    /// Total flux stored in the map.
+    pub fn stored_power(&self) -> Vec3 {
+        self.photons.iter().map(|p| p.power).sum()
+    }
+}
+
+/// Origin, direction and flux of a photon leaving `source`.
+fn emit(
+    frame: &FrameScene,
+    source: &Source,
+    s: &PhotonSampler,
+    centre: Vec3,
+    radius: f32,
+) -> Option<(Vec3, Vec3, Vec3)> {
+    match *source {
+        Source::Punctual(i) => {
+            let l = &frame.lights[i];
+            match l.kind {
+                LightKind::Point => Some((
+                    l.position,
+                    uniform_sphere(s.get(3), s.get(4)),
+                    4.0 * PI * l.intensity,
+                )),
+                LightKind::Spot { inner, outer } => {
+                    // Uniform in the outer cone, weighted by the smooth falloff.
+                    let (co, ci) = (outer.cos(), inner.cos());
+                    let z = 1.0 - s.get(3) * (1.0 - co);
+                    let r = (1.0 - z * z).max(0.0).sqrt();
+                    let phi = 2.0 * PI * s.get(4);
+                    let (t, b) = basis(l.direction);
+                    let d =
+                        (t * (r * phi.cos()) + b * (r * phi.sin()) + l.direction * z).normalize();
+                    let f = ((z - co) / (ci - co).max(1e-4)).clamp(0.0, 1.0);
+                    Some((l.position, d, 2.0 * PI * (1.0 - co) * l.intensity * f * f))
+                }
+                LightKind::Directional => {
+                    let (t, b) = basis(l.direction);
+                    let r = radius * s.get(1).sqrt();
+                    let phi = 2.0 * PI * s.get(2);
+                    let o = centre - l.direction * (2.0 * radius)
+                        + t * (r * phi.cos())
+                        + b * (r * phi.sin());
+                    Some((o, l.direction, PI * radius * radius * l.intensity))
+                }
+            }
+        }
+        Source::Emitter(i) => {
+            let e = &frame.emitters.list[i];
+            let g = frame.geometry(e.motion);
+            let tri = &g.triangles[e.triangle as usize];
+            let su = s.get(1).sqrt();
+            let u2 = s.get(2);
+            let y =
+                Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
+            let mut n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
+            let mut u3 = s.get(3);
+            let mut sides = 1.0;
+            if e.double_sided {
+                sides = 2.0;
+                if u3 < 0.5 {
+                    n = -n;
+                    u3 *= 2.0;
+                } else {
+                    u3 = 2.0 * u3 - 1.0;
+                }
+            }
+            let d = cosine_direction(n, u3.min(0.999_999_9), s.get(4));
+            Some((y + n * offset_of(tri), d, PI * e.radiance * e.area * sides))
+        }
+    }
+}
+
+/// Follows one photon, storing it at every diffuse hit.
+#[allow(clippy::too_many_arguments)] // the photon's state, spelled out
+fn trace_path(
+    frame: &FrameScene,
+    m: Materials,
+    mut o: Vec3,
+    mut dir: Vec3,
+    mut flux: Vec3,
+    s: &PhotonSampler,
+    max_bounces: u32,
+    out: &mut Vec<Photon>,
+) {
+    for bounce in 0..=max_bounces {
+        let Some(hit) = frame.accel.closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            o,
+            dir,
+            f32::INFINITY,
+        ) else {
+            return;
+        };
+        let sp = SurfacePoint::new(frame, hit, o, dir);
+        out.push(Photon {
+            position: sp.position,
+            normal: sp.ng,
+            power: flux,
+        });
+        // Russian roulette by albedo (Jensen §5.3): survive with p = mean albedo.
+        let albedo = sp.albedo(m);
+        let p = ((albedo.x + albedo.y + albedo.z) / 3.0).clamp(0.0, 1.0);
+        let d = 5 + 3 * bounce;
+        if s.get(d) >= p || p <= 0.0 {
+            return;
+        }
+        flux *= albedo / p;
+        dir = cosine_direction(sp.ns, s.get(d + 1).min(0.999_999_9), s.get(d + 2));
+        if dir.dot(sp.ng) <= 0.0 {
+            return;
+        }
+        o = sp.spawn();
+    }
+}

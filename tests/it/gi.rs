@@ -1,0 +1,340 @@
+//! Global illumination baselines: a furnace room with a closed-form answer, photon power
+//! conservation, brute force against the path-traced reference, determinism and extremes.
+
+use super::common::*;
+use super::scenes::base64_encode;
+use anchorage::gi::photons::PhotonMap;
+use anchorage::render::Materials;
+use anchorage::scene::Scene;
+
+/// A closed cube room, side 2·`half`, every wall emitting radiance `le` inward, albedo `rho`.
+/// In such an enclosure the radiance is L = Le / (1 − ρ) everywhere, so at a wall
+/// emission = Le, direct = ρ·Le (every direction sees Le) and indirect = ρ²·Le / (1 − ρ).
+fn furnace(
+    dir: &std::path::Path,
+    rho: f32,
+    le: f32,
+    half: f32,
+    method: &str,
+    extra: &str,
+) -> anchorage::job::Job {
+    let h = half;
+    let corners = [
+        [-h, -h, -h],
+        [h, -h, -h],
+        [h, h, -h],
+        [-h, h, -h],
+        [-h, -h, h],
+        [h, -h, h],
+        [h, h, h],
+        [-h, h, h],
+    ];
+    // Faces wound counter-clockwise seen from inside.
+    let faces: [[u32; 4]; 6] = [
+        [0, 1, 2, 3],
+        [5, 4, 7, 6],
+        [4, 0, 3, 7],
+        [1, 5, 6, 2],
+        [3, 2, 6, 7],
+        [4, 5, 1, 0],
+    ];
+    let mut idx = Vec::new();
+    for f in faces {
+        idx.extend([f[0], f[1], f[2], f[0], f[2], f[3]]);
+    }
+    let mut bin: Vec<u8> = corners
+        .iter()
+        .flatten()
+        .flat_map(|v: &f32| v.to_le_bytes())
+        .collect();
+    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
+    let gltf = format!(
+        r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["KHR_materials_emissive_strength"],"scenes":[{{"nodes":[0]}}],
+        "nodes":[{{"name":"room","mesh":0}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[{rho},{rho},{rho},1],"metallicFactor":0}},
+                      "emissiveFactor":[1,1,1],"extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":{le}}}}}}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","min":[{},{},{}],"max":[{h},{h},{h}]}},
+                     {{"bufferView":0,"byteOffset":96,"componentType":5125,"count":36,"type":"SCALAR"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":240}}],
+        "buffers":[{{"byteLength":240,"uri":"data:application/octet-stream;base64,{}"}}]}}"#,
+        -h,
+        -h,
+        -h,
+        base64_encode(&bin)
+    );
+    std::fs::write(dir.join("furnace.gltf"), gltf).unwrap();
+    job_from_json(
+        &dir.join("j.json"),
+        &format!(
+            r#"{{"scene":[{{"path":"furnace.gltf"}}],"camera":{{"position":[0,0,{}],"look_at":[0,0,{}],"yfov_deg":70}},
+            "resolution":[24,24],"render":{{"samples_per_pixel":4,"light_samples":4}},"method":{{"name":"{method}"{extra}}}}}"#,
+            0.5 * h,
+            -h
+        ),
+    )
+    .unwrap()
+}
+
+fn mean(img: &anchorage::render::FrameImage, f: impl Fn(usize) -> f32) -> f64 {
+    (0..img.beauty.len()).map(|i| f(i) as f64).sum::<f64>() / img.beauty.len() as f64
+}
+
+#[test]
+fn furnace_indirect_matches_closed_form() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rho, le) = (0.5f32, 2.0f32);
+    let want = (rho * rho * le / (1.0 - rho)) as f64;
+    for (method, extra, tol) in [
+        ("brute-force", r#","preset":"draft","photons":100000"#, 0.05),
+        ("precomputed", r#","preset":"draft","photons":100000"#, 0.05),
+        (
+            "path-trace",
+            r#","preset":"draft","path_samples":64,"path_depth":24"#,
+            0.03,
+        ),
+    ] {
+        let job = furnace(dir.path(), rho, le, 1.0, method, extra);
+        let img = render(&job, 0);
+        let ind = mean(&img, |i| img.indirect[i][1]);
+        // Direct light is checked away from the room's edges, where the 1/r² of nearby
+        // emitters makes the light-sampling estimate heavy-tailed (it converges there too,
+        // but slowly: 0.95, 0.97, 0.98 of the answer at 4, 64, 512 light samples).
+        let centre = (8..16).flat_map(|y| (8..16).map(move |x| y * 24 + x));
+        let direct = centre.map(|i| img.direct[i][1] as f64).sum::<f64>() / 64.0;
+        eprintln!(
+            "{method}: indirect {ind:.4} (closed form {want:.4}), direct {direct:.4} (closed form {})",
+            rho * le
+        );
+        assert!(
+            (ind - want).abs() / want < tol,
+            "{method}: indirect {ind} vs {want}"
+        );
+        assert!(
+            (direct - f64::from(rho * le)).abs() / f64::from(rho * le) < 0.02,
+            "{method}: direct {direct}"
+        );
+    }
+}
+
+/// Stored flux: every diffuse hit stores the photon, and Russian roulette by albedo keeps
+/// the expected flux, so a closed room stores Φ·Σ_{n=0}^{B} ρⁿ.
+#[test]
+fn photon_power_is_conserved() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rho, bounces) = (0.6f32, 30u32);
+    // At a millimetre scale too: a BVH or intersection test that lets rays through shared
+    // edges loses photons out of the closed room (regression: 3 % were lost at 1e-3).
+    for half in [1.0f32, 1e-3, 1e4] {
+        let job = furnace(dir.path(), rho, 1.0, half, "brute-force", "");
+        let scene = Scene::load(&job).unwrap();
+        let statics = scene.statics();
+        let frame = scene.evaluate(0.0, 1.0, &statics);
+        let m = Materials {
+            materials: &scene.materials,
+            textures: &scene.textures,
+        };
+        let pm = PhotonMap::trace(&frame, m, 200_000, 7, bounces);
+        let emitted = pm.emitted_power.y as f64;
+        // Emitted flux of six inward faces of area 4·half² with radiance 1: π·Le·A.
+        let area = 24.0 * (half as f64).powi(2);
+        assert!(
+            (emitted - std::f64::consts::PI * area).abs() < 1e-3 * emitted,
+            "{emitted}"
+        );
+        let want = emitted
+            * (0..=bounces)
+                .map(|n| (rho as f64).powi(n as i32))
+                .sum::<f64>();
+        let got = pm.stored_power().y as f64;
+        eprintln!("scale {half}: stored {got:.5e}, expected {want:.5e}");
+        assert!(
+            (got - want).abs() / want < 0.01,
+            "scale {half}: stored {got} vs expected {want}"
+        );
+    }
+}
+
+/// Brute force against the unbiased reference on the example. Photon mapping is biased
+/// (density estimation blurs over k photons, darkening corners and edges) and the cache
+/// interpolates: measured 2–3 % on the beauty at this size, dominated by the 16-sample
+/// direct-light noise common to both, and ~10 % on the indirect AOV alone. The mean
+/// indirect light agrees within 3 % (the bias is local, not a loss of energy).
+#[test]
+fn brute_force_is_close_to_the_path_traced_reference() {
+    let job_for = |method: &str, extra: &str| {
+        job_from_json(
+            &example_job(),
+            &format!(
+                r#"{{"scene":[{{"path":"room.gltf"}}],"camera":{{"position":[0,1.5,6.5],"look_at":[0,1.3,0],"yfov_deg":38}},
+                "resolution":[64,48],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":16}},
+                "method":{{"name":"{method}"{extra}}}}}"#
+            ),
+        )
+        .unwrap()
+    };
+    let bf = render(&job_for("brute-force", r#","preset":"draft""#), 12);
+    let pt = render(&job_for("path-trace", r#","path_samples":512"#), 12);
+    let beauty = anchorage::compare::rms_error_pct(&bf, &pt, anchorage::compare::Aov::Beauty);
+    let indirect = anchorage::compare::rms_error_pct(&bf, &pt, anchorage::compare::Aov::Indirect);
+    let (mb, mp) = (
+        mean(&bf, |i| bf.indirect[i][1]),
+        mean(&pt, |i| pt.indirect[i][1]),
+    );
+    eprintln!(
+        "beauty RMS {beauty:.2} %, indirect RMS {indirect:.2} %, mean indirect {mb:.4} vs {mp:.4}"
+    );
+    assert!(beauty < 5.0, "beauty RMS {beauty} %");
+    assert!(indirect < 20.0, "indirect RMS {indirect} %");
+    assert!((mb - mp).abs() / mp < 0.03, "mean indirect {mb} vs {mp}");
+}
+
+#[test]
+fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = render(
+        &furnace(
+            dir.path(),
+            0.5,
+            1.0,
+            1.0,
+            "brute-force",
+            r#","preset":"draft""#,
+        ),
+        0,
+    );
+    for (half, le, factor) in [
+        (1e-3f32, 1.0f32, 1.0f32),
+        (1e4, 1.0, 1.0),
+        (1.0, 1e-6, 1e-6),
+        (1.0, 1e6, 1e6),
+    ] {
+        let img = render(
+            &furnace(
+                dir.path(),
+                0.5,
+                le,
+                half,
+                "brute-force",
+                r#","preset":"draft""#,
+            ),
+            0,
+        );
+        assert!(
+            img.beauty
+                .iter()
+                .flatten()
+                .chain(img.direct.iter().flatten())
+                .chain(img.indirect.iter().flatten())
+                .chain(&img.depth)
+                .all(|v| v.is_finite()),
+            "non-finite AOV at scale {half}, Le {le}"
+        );
+        // Intensity scales exactly; geometry scales up to float rounding, which moves a few
+        // photons across a k-nearest boundary: compare the image as a whole (measured: 1e-4
+        // at 1e-3, 3e-3 at 1e4; the method's own noise is ~5 %).
+        let (mut d, mut n) = (0.0f64, 0.0f64);
+        for (a, b) in img.indirect.iter().zip(&base.indirect) {
+            d += ((a[1] / factor - b[1]) as f64).powi(2);
+            n += (b[1] as f64).powi(2);
+        }
+        let rms = (d / n).sqrt();
+        eprintln!("scale {half}, Le {le}: relative RMS difference {rms:.2e}");
+        assert!(
+            rms < 5e-3,
+            "scale {half}, Le {le}: relative RMS difference {rms}"
+        );
+    }
+}
+
+#[test]
+fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let job = a.path().join("job.json");
+    std::fs::write(
+        &job,
+        format!(
+            r#"{{"scene":[{{"path":"{}"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":2}},
+            "method":{{"name":"brute-force","preset":"draft"}}}}"#,
+            root().join("examples/room/room.gltf").display()
+        ),
+    )
+    .unwrap();
+    for method in ["brute-force", "precomputed"] {
+        for (dir, threads) in [(&a, "1"), (&b, "2")] {
+            let o = run(&[
+                "render",
+                job.to_str().unwrap(),
+                "--frames",
+                "4-6",
+                "--method",
+                method,
+                "--threads",
+                threads,
+                "--out",
+                dir.path().join(method).to_str().unwrap(),
+                "--quiet",
+            ]);
+            assert!(o.status.success(), "{}", stderr(&o));
+        }
+        for f in 4..=6 {
+            let name = format!("{method}/job.{f:04}.exr");
+            assert!(
+                std::fs::read(a.path().join(&name)).unwrap()
+                    == std::fs::read(b.path().join(&name)).unwrap(),
+                "{name} differs"
+            );
+        }
+    }
+}
+
+#[test]
+fn compare_reports_every_method_with_a_table_json_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let job = dir.path().join("job.json");
+    std::fs::write(
+        &job,
+        format!(
+            r#"{{"scene":[{{"path":"{}"}}],"camera":{{"position":[0,1.5,6.5],"look_at":[0,1.3,0],"yfov_deg":38}},
+            "resolution":[32,24],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":4}},"method":{{"preset":"draft"}},
+            "output":{{"directory":"out"}}}}"#,
+            root().join("examples/room/room.gltf").display()
+        ),
+    )
+    .unwrap();
+    let o = run(&[
+        "compare",
+        job.to_str().unwrap(),
+        "--methods",
+        "brute-force,precomputed,direct",
+        "--frames",
+        "3-5",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = String::from_utf8_lossy(&o.stdout);
+    for m in [
+        "brute-force/draft",
+        "precomputed/draft",
+        "direct/draft",
+        "reference path-trace/draft",
+    ] {
+        assert!(table.contains(m), "{table}");
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("out/compare.json")).unwrap())
+            .unwrap();
+    let results = report["results"].as_array().unwrap();
+    assert_eq!(results.len(), 3);
+    let by = |m: &str| results.iter().find(|r| r["method"] == m).unwrap();
+    // Without indirect light the error is larger than with it, and the static camera gives
+    // every pixel to the flicker measure.
+    assert!(
+        by("direct")["rms_error_pct"].as_f64().unwrap()
+            > by("brute-force")["rms_error_pct"].as_f64().unwrap()
+    );
+    assert!(by("brute-force")["flicker_pixels"].as_u64().unwrap() > 500);
+    assert!(by("brute-force")["rays_shot_per_frame"].as_f64().unwrap() > 0.0);
+    let png = std::fs::read(dir.path().join("out/compare.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
