@@ -25,16 +25,71 @@ use crate::pipeline::{self, FrameStats};
 use crate::render::FrameImage;
 use crate::scene::Scene;
 
-/// One method at one preset.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// One method at one preset, optionally with one setting changed.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Variant {
     pub method: Method,
     pub preset: Preset,
+    pub setting: Option<Setting>,
+}
+
+/// A method setting swept by `compare --vary`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Setting {
+    Photons(u32),
+    K(u32),
+    Strata([u32; 2]),
+    Error(f32),
+}
+
+impl Setting {
+    /// Parses `KEY=V1,V2,...` into one setting per value.
+    pub fn parse_list(s: &str) -> Option<Vec<Setting>> {
+        let (key, values) = s.split_once('=')?;
+        values
+            .split(',')
+            .map(|v| {
+                let v = v.trim();
+                Some(match key.trim() {
+                    "photons" => Setting::Photons(v.parse().ok()?),
+                    "k" => Setting::K(v.parse().ok()?),
+                    "strata" => {
+                        let (m, n) = v.split_once('x')?;
+                        Setting::Strata([m.parse().ok()?, n.parse().ok()?])
+                    }
+                    "error" => Setting::Error(v.parse().ok()?),
+                    _ => return None,
+                })
+            })
+            .collect()
+    }
+
+    pub fn apply(&self, m: &mut crate::job::MethodSettings) {
+        match *self {
+            Setting::Photons(v) => m.photons = Some(v),
+            Setting::K(v) => m.k = Some(v),
+            Setting::Strata(v) => m.strata = Some(v),
+            Setting::Error(v) => m.error = Some(v),
+        }
+    }
+
+    fn label(&self) -> String {
+        match self {
+            Setting::Photons(v) => format!("photons={v}"),
+            Setting::K(v) => format!("k={v}"),
+            Setting::Strata([m, n]) => format!("strata={m}x{n}"),
+            Setting::Error(v) => format!("error={v}"),
+        }
+    }
 }
 
 impl Variant {
     pub fn label(&self) -> String {
-        format!("{}/{}", self.method.name(), preset_name(self.preset))
+        let base = format!("{}/{}", self.method.name(), preset_name(self.preset));
+        match &self.setting {
+            Some(s) => format!("{base} {}", s.label()),
+            None => base,
+        }
     }
 }
 
@@ -68,8 +123,23 @@ pub struct Score {
     pub indirect_rms_error_pct: f64,
     pub indirect_flicker_pct: Option<f64>,
     pub rays_shot_per_frame: f64,
+    /// Final-gather rays traced per second of final-gathering time, per worker thread.
+    pub gather_rays_per_s_per_core: Option<f64>,
+    /// Median per-stage seconds (the paper's Table 1 rows).
+    pub table1_s: Table1,
     pub caches_per_frame: f64,
     pub photons_per_frame: f64,
+}
+
+/// Median seconds per stage.
+#[derive(Debug, Clone, Serialize)]
+pub struct Table1 {
+    pub photon_tracing: f64,
+    pub irradiance_estimation: f64,
+    pub final_gathering: f64,
+    pub cache_interpolation: f64,
+    pub direct_lighting: f64,
+    pub total: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -90,10 +160,13 @@ struct Run {
     stats: Vec<FrameStats>,
 }
 
-fn run(job: &Job, scene: &Scene, v: Variant) -> Run {
+fn run(job: &Job, scene: &Scene, v: &Variant) -> Run {
     let mut job = job.clone();
     job.method.name = v.method;
     job.method.preset = v.preset;
+    if let Some(s) = &v.setting {
+        s.apply(&mut job.method);
+    }
     let statics = scene.statics();
     let mut session = Session::default();
     let mut images = Vec::new();
@@ -180,13 +253,13 @@ pub fn flicker_pct(run: &[FrameImage], reference: &[FrameImage], aov: Aov) -> (O
 }
 
 /// Renders the reference and every variant over the job's frames and scores them.
-pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: Variant) -> Report {
+pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: &Variant) -> Report {
     let reference_run = run(job, scene, reference);
     let (ref_flicker, _) = flicker_pct(&reference_run.images, &reference_run.images, Aov::Beauty);
     let (ref_ind_flicker, _) =
         flicker_pct(&reference_run.images, &reference_run.images, Aov::Indirect);
     let mut results = Vec::new();
-    for &v in variants {
+    for v in variants {
         let r = run(job, scene, v);
         let per_frame: Vec<f64> = r
             .images
@@ -220,6 +293,45 @@ pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: Varian
                 .map(|s| s.counts.rays_shot as f64)
                 .sum::<f64>()
                 / n,
+            gather_rays_per_s_per_core: {
+                let (rays, secs) = r.stats.iter().fold((0.0, 0.0), |(a, b), s| {
+                    (
+                        a + s.counts.rays_shot as f64,
+                        b + s.timings_s.final_gathering,
+                    )
+                });
+                (secs > 0.0).then(|| rays / secs / rayon::current_num_threads() as f64)
+            },
+            table1_s: Table1 {
+                photon_tracing: median(
+                    r.stats.iter().map(|s| s.timings_s.photon_tracing).collect(),
+                ),
+                irradiance_estimation: median(
+                    r.stats
+                        .iter()
+                        .map(|s| s.timings_s.irradiance_estimation)
+                        .collect(),
+                ),
+                final_gathering: median(
+                    r.stats
+                        .iter()
+                        .map(|s| s.timings_s.final_gathering)
+                        .collect(),
+                ),
+                cache_interpolation: median(
+                    r.stats
+                        .iter()
+                        .map(|s| s.timings_s.cache_interpolation)
+                        .collect(),
+                ),
+                direct_lighting: median(
+                    r.stats
+                        .iter()
+                        .map(|s| s.timings_s.direct_lighting)
+                        .collect(),
+                ),
+                total: median(r.stats.iter().map(|s| s.timings_s.total).collect()),
+            },
             caches_per_frame: r.stats.iter().map(|s| s.counts.caches as f64).sum::<f64>() / n,
             photons_per_frame: r.stats.iter().map(|s| s.counts.photons as f64).sum::<f64>() / n,
         });
@@ -256,7 +368,7 @@ pub fn table(r: &Report) -> String {
         r.resolution[1]
     );
     s += &format!(
-        "{:<26} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>8} {:>9}\n",
+        "{:<40} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>8} {:>9}\n",
         "method/preset",
         "s/frame",
         "RMS err%",
@@ -269,7 +381,7 @@ pub fn table(r: &Report) -> String {
     );
     for x in &r.results {
         s += &format!(
-            "{:<26} {:>9.3} {:>9.2} {:>9} {:>9.2} {:>9} {:>12.0} {:>8.0} {:>9.0}\n",
+            "{:<40} {:>9.3} {:>9.2} {:>9} {:>9.2} {:>9} {:>12.0} {:>8.0} {:>9.0}\n",
             x.label,
             x.seconds_per_frame_median,
             x.rms_error_pct,
@@ -279,6 +391,33 @@ pub fn table(r: &Report) -> String {
             x.rays_shot_per_frame,
             x.caches_per_frame,
             x.photons_per_frame
+        );
+    }
+    s += &format!(
+        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14}\n",
+        rayon::current_num_threads(),
+        "method/preset",
+        "photons",
+        "irr.est",
+        "gather",
+        "interp",
+        "direct",
+        "total",
+        "gather rays/s/core"
+    );
+    for x in &r.results {
+        let t = &x.table1_s;
+        s += &format!(
+            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14}\n",
+            x.label,
+            t.photon_tracing,
+            t.irradiance_estimation,
+            t.final_gathering,
+            t.cache_interpolation,
+            t.direct_lighting,
+            t.total,
+            x.gather_rays_per_s_per_core
+                .map_or("n/a".into(), |v| format!("{:.2} M", v / 1e6))
         );
     }
     s
@@ -392,7 +531,7 @@ pub fn plot(r: &Report) -> image::RgbImage {
         }
         // Legend, top right: colour, label, error.
         let ly = top + 6 + 12 * i as i32;
-        let lx = w as i32 - right - 8 * 34;
+        let lx = w as i32 - right - 8 * 44;
         for dy in 0..7 {
             for dx in 0..7 {
                 img.put_pixel((lx + dx) as u32, (ly + dy) as u32, image::Rgb(c));

@@ -12,6 +12,7 @@ use glam::{EulerRot, Mat4, Quat, Vec3};
 use serde::Deserialize;
 
 use crate::error::{Error, Result};
+use crate::gi::coherent::AnchorParams;
 use crate::gi::{GiParams, Preset};
 use crate::scene::Motion;
 
@@ -178,8 +179,10 @@ impl Default for RenderSettings {
 #[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// Emission and direct lighting only; no indirect light.
+    /// The paper's anchors: temporally coherent final gathering (the default).
     #[default]
+    Anchors,
+    /// Emission and direct lighting only; no indirect light.
     Direct,
     /// Photon map + irradiance cache, every stratum re-gathered every frame (paper Table 1).
     BruteForce,
@@ -192,6 +195,7 @@ pub enum Method {
 impl Method {
     pub fn name(self) -> &'static str {
         match self {
+            Method::Anchors => "anchors",
             Method::Direct => "direct",
             Method::BruteForce => "brute-force",
             Method::Precomputed => "precomputed",
@@ -227,6 +231,8 @@ pub struct MethodSettings {
     pub max_age: Option<u32>,
     pub path_samples: Option<u32>,
     pub path_depth: Option<u32>,
+    /// `anchors` settings (each key defaults as documented in README.md).
+    pub anchors: Option<AnchorParams>,
 }
 
 impl MethodSettings {
@@ -260,10 +266,14 @@ impl MethodSettings {
         if let Some(v) = self.path_depth {
             p.path_depth = v;
         }
+        if let Some(v) = self.anchors {
+            p.anchors = v;
+        }
         p
     }
 
-    fn validate(&self, path: &Path) -> Result<()> {
+    /// Checks every value; errors name `method.KEY` in the file at `path`.
+    pub fn validate(&self, path: &Path) -> Result<()> {
         let p = self.params();
         let bad = |key: &str, msg: &str| {
             Err(Error::input(path, format!("method.{key}"), msg.to_string()))
@@ -291,6 +301,28 @@ impl MethodSettings {
         }
         if p.path_depth == 0 || p.path_depth > 40 {
             return bad("path_depth", "must be 1..=40");
+        }
+        let a = p.anchors;
+        if !(a.d_max > 0.0 && a.d_max <= 1.0) {
+            return bad(
+                "anchors.d_max",
+                "must be in (0, 1] (a fraction of the scene radius)",
+            );
+        }
+        if !(a.photon_radius > 0.0 && a.photon_radius <= 1.0) {
+            return bad("anchors.photon_radius", "must be in (0, 1]");
+        }
+        if !(-1.0..=1.0).contains(&a.normal_cos) || !(a.albedo_tolerance >= 0.0) {
+            return bad(
+                "anchors.normal_cos",
+                "normal_cos must be in [-1, 1] and albedo_tolerance >= 0",
+            );
+        }
+        if !(a.rebalance >= 1.0 && a.importons_per_pixel > 0.0 && a.importons_per_pixel <= 16.0) {
+            return bad(
+                "anchors.rebalance",
+                "rebalance must be >= 1 and importons_per_pixel in (0, 16]",
+            );
         }
         Ok(())
     }
@@ -487,7 +519,11 @@ impl Job {
     /// of slack for key times stored as f32 (Blender writes frame 1 at 1/24 s).
     pub fn frames_in(&self, t0: f32, t1: f32) -> (f64, f64) {
         let frame = |t: f32| t as f64 * self.fps + self.frame_offset;
-        ((frame(t0) - 1e-3).ceil(), (frame(t1) + 1e-3).floor())
+        // `+ 0.0` turns a negative zero into zero for display.
+        (
+            (frame(t0) - 1e-3).ceil() + 0.0,
+            (frame(t1) + 1e-3).floor() + 0.0,
+        )
     }
 
     /// Path of a frame's EXR; its stats and preview share the stem.

@@ -32,7 +32,8 @@ enum Command {
         /// Output directory, overriding the job's `output.directory`.
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Method, overriding the job's `method.name`: direct, brute-force, precomputed, path-trace.
+        /// Method, overriding the job's `method.name`: anchors, brute-force, precomputed,
+        /// path-trace, direct.
         #[arg(long)]
         method: Option<String>,
         /// Worker threads (default: all cores). The output does not depend on it.
@@ -52,11 +53,15 @@ enum Command {
     Compare {
         job: PathBuf,
         /// Comma-separated methods to measure.
-        #[arg(long, default_value = "brute-force,precomputed")]
+        #[arg(long, default_value = "anchors,brute-force,precomputed")]
         methods: String,
         /// Comma-separated presets each method runs at (default: the job's preset).
         #[arg(long)]
         presets: Option<String>,
+        /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..` or `error=..`; each
+        /// value runs as its own variant of every method. Repeatable.
+        #[arg(long)]
+        vary: Vec<String>,
         /// The reference method.
         #[arg(long, default_value = "path-trace")]
         reference: String,
@@ -111,7 +116,7 @@ fn parse_method(s: &str) -> Result<anchorage::job::Method, Error> {
         Error::input(
             "--method",
             s,
-            "expected direct, brute-force, precomputed or path-trace",
+            "expected anchors, brute-force, precomputed, path-trace or direct",
         )
     })
 }
@@ -174,6 +179,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             job,
             methods,
             presets,
+            vary,
             reference,
             reference_preset,
             frames,
@@ -199,11 +205,39 @@ fn run(cli: Cli) -> Result<(), Error> {
                     .collect::<Result<Vec<_>, _>>()?,
                 None => vec![job.method.preset],
             };
+            let mut settings = vec![None];
+            for v in &vary {
+                let list = anchorage::compare::Setting::parse_list(v).ok_or_else(|| {
+                    Error::input(
+                        "--vary",
+                        v,
+                        "expected photons=, k=, strata=MxN or error= with comma-separated values",
+                    )
+                })?;
+                settings.extend(list.into_iter().map(Some));
+            }
+            if !vary.is_empty() {
+                settings.remove(0);
+            }
             let mut variants = Vec::new();
             for m in methods.split(',') {
                 let method = parse_method(m.trim())?;
                 for &preset in &presets {
-                    variants.push(anchorage::compare::Variant { method, preset });
+                    for setting in &settings {
+                        let v = anchorage::compare::Variant {
+                            method,
+                            preset,
+                            setting: *setting,
+                        };
+                        if let Some(s) = setting {
+                            // A swept value is checked like a job-file value.
+                            let mut m = job.method;
+                            m.preset = preset;
+                            s.apply(&mut m);
+                            m.validate(&job.path)?;
+                        }
+                        variants.push(v);
+                    }
                 }
             }
             let reference = anchorage::compare::Variant {
@@ -212,10 +246,11 @@ fn run(cli: Cli) -> Result<(), Error> {
                     Some(p) => preset(&p)?,
                     None => job.method.preset,
                 },
+                setting: None,
             };
             let scene = Scene::load(&job)?;
             anchorage::output::check_output_dir(&job.out_dir)?;
-            let report = anchorage::compare::compare(&job, &scene, &variants, reference);
+            let report = anchorage::compare::compare(&job, &scene, &variants, &reference);
             print!("{}", anchorage::compare::table(&report));
             anchorage::compare::write(&job.out_dir, &report)?;
             println!(

@@ -81,6 +81,13 @@ pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
         ch("indirect.B", plane(&|i| img.indirect[i][2])),
         ch("Z", img.depth.clone()),
     ];
+    let mut channels = channels;
+    if let Some(ids) = &img.anchor_id {
+        channels.push(AnyChannel::new("anchor_id", FlatSamples::U32(ids.clone())));
+    }
+    if let Some(r) = &img.reshoot {
+        channels.push(ch("reshoot", r.clone()));
+    }
     let layer = Layer::new(
         (img.width as usize, img.height as usize),
         LayerAttributes::default(),

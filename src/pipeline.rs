@@ -29,6 +29,8 @@ pub struct Timings {
     pub irradiance_estimation: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
+    /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).
+    pub visibility: f64,
     /// Direct light at camera hits (for `path-trace`: the whole path tracing).
     pub direct_lighting: f64,
     pub output: f64,
@@ -52,6 +54,27 @@ pub struct Counts {
     pub rays_shot: u64,
     /// Pixel samples no cache record covered, gathered on the spot.
     pub uncached_samples: u64,
+    /// Final-gather rays traced this frame by records that existed before it (for
+    /// `anchors`, the re-shot strata; for brute force, every stratum of every record).
+    pub rays_reshot: u64,
+    /// Live anchors, and anchors created this frame (`anchors`).
+    pub anchors: u64,
+    pub anchors_created: u64,
+}
+
+/// Live anchors by how many strata link them (the paper's Figure 8).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct AnchorReuse {
+    #[serde(rename = "1")]
+    pub one: u64,
+    #[serde(rename = "2-10")]
+    pub two_to_10: u64,
+    #[serde(rename = "11-100")]
+    pub eleven_to_100: u64,
+    #[serde(rename = "101-1000")]
+    pub hundred_one_to_1000: u64,
+    #[serde(rename = ">1000")]
+    pub over_1000: u64,
 }
 
 #[derive(Debug, Clone, Default, Serialize)]
@@ -61,6 +84,12 @@ pub struct Memory {
     pub bvh_static_bytes: u64,
     pub bvh_dynamic_bytes: u64,
     pub image_bytes: u64,
+    /// Cached methods: bytes of one stratum and of all strata; `anchors`: of one anchor and
+    /// of all anchors.
+    pub bytes_per_stratum: u64,
+    pub strata_bytes: u64,
+    pub bytes_per_anchor: u64,
+    pub anchors_bytes: u64,
 }
 
 /// The stats JSON written beside each frame.
@@ -75,6 +104,9 @@ pub struct FrameStats {
     pub timings_s: Timings,
     pub counts: Counts,
     pub memory: Memory,
+    /// `anchors` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub anchor_reuse: Option<AnchorReuse>,
 }
 
 /// How frames are reported while rendering.
@@ -127,8 +159,12 @@ pub fn render_frame(
             stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
             r
         }
-        Method::BruteForce | Method::Precomputed => {
-            let pre = job.method.name == Method::Precomputed;
+        Method::BruteForce | Method::Precomputed | Method::Anchors => {
+            let pre = match job.method.name {
+                Method::Precomputed => gi::CachedMethod::Precomputed,
+                Method::Anchors => gi::CachedMethod::Anchors,
+                _ => gi::CachedMethod::BruteForce,
+            };
             let (img, rc, gs) = gi::render_cached(
                 &fs,
                 m,
@@ -153,6 +189,27 @@ pub fn render_frame(
             c.caches = gs.caches;
             c.rays_shot = gs.rays_shot;
             c.uncached_samples = gs.uncached_samples;
+            c.rays_reshot = gs.rays_shot;
+            if let Some(a) = &gs.anchors {
+                c.anchors = a.anchors;
+                c.anchors_created = a.anchors_created;
+                c.rays_reshot = a.rays_reshot;
+                stats.timings_s.visibility = a.visibility_s;
+                stats.anchor_reuse = Some(AnchorReuse {
+                    one: a.reuse_histogram[0],
+                    two_to_10: a.reuse_histogram[1],
+                    eleven_to_100: a.reuse_histogram[2],
+                    hundred_one_to_1000: a.reuse_histogram[3],
+                    over_1000: a.reuse_histogram[4],
+                });
+                stats.memory.bytes_per_anchor = size_of::<gi::anchors::Anchor>() as u64;
+                stats.memory.anchors_bytes = a.anchors * size_of::<gi::anchors::Anchor>() as u64;
+            }
+            stats.memory.bytes_per_stratum = size_of::<gi::cache::Stratum>() as u64;
+            stats.memory.strata_bytes = c.caches
+                * (job.method.params().cache.strata[0] * job.method.params().cache.strata[1])
+                    as u64
+                * size_of::<gi::cache::Stratum>() as u64;
             (img, rc)
         }
         Method::PathTrace => {
@@ -202,6 +259,7 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
         timings_s: Timings::default(),
         counts: Counts::default(),
         memory: Memory::default(),
+        anchor_reuse: None,
     }
 }
 

@@ -26,20 +26,60 @@ use crate::render::SurfacePoint;
 use crate::sampling::hash;
 use crate::scene::{FrameCamera, FrameScene, Motion, Projection};
 
-/// Stratum flag: the gather ray hit geometry.
-pub const HIT_ANY: u8 = 1;
-/// Stratum flag: the gather ray hit a dynamic prim.
-pub const HIT_DYNAMIC: u8 = 2;
+/// Stratum flag: the gather ray hit a dynamic prim (its radiance was estimated directly).
+pub const HIT_DYNAMIC: u8 = 1;
+/// Stratum flag: visibility detection found a dynamic prim over the stratum when it was last
+/// updated, so it is re-shot once more to catch the disocclusion (§3.2).
+pub const SEEN_DYNAMIC: u8 = 2;
 
-/// One gather direction of a record (the paper's `RadianceSample`, §4.1).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct Stratum {
-    /// Distance to the hit; infinite on a miss.
-    pub distance: f32,
-    pub flags: u8,
-    /// Radiance arriving from this direction.
-    pub radiance: Vec3,
+/// One gather direction of a record (the paper's `RadianceSample`, §4.1) in 6 bytes: a
+/// 30-bit anchor link with two flag bits, and the hit distance as an f16 in units of the
+/// record's pixel footprint (scale-free: the same bits at 1e−3 and 1e4; infinite on a miss).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[repr(C)]
+pub struct Stratum([u16; 3]);
+
+impl Stratum {
+    pub fn new(link: u32, flags: u8, distance: f32, scale: f32) -> Self {
+        let link = link.min(NO_LINK);
+        let d = if distance.is_finite() {
+            half::f16::from_f32((distance / scale).min(65504.0)).to_bits()
+        } else {
+            half::f16::INFINITY.to_bits()
+        };
+        Stratum([
+            link as u16,
+            (link >> 16) as u16 | (flags as u16 & 3) << 14,
+            d,
+        ])
+    }
+
+    /// The anchor the stratum's ray reaches, if it hit static geometry in the anchor method.
+    pub fn link(&self) -> Option<u32> {
+        let l = self.0[0] as u32 | ((self.0[1] as u32) & 0x3fff) << 16;
+        (l != NO_LINK).then_some(l)
+    }
+
+    pub fn flags(&self) -> u8 {
+        (self.0[1] >> 14) as u8
+    }
+
+    pub fn set_flags(&mut self, flags: u8) {
+        self.0[1] = (self.0[1] & 0x3fff) | (flags as u16 & 3) << 14;
+    }
+
+    /// Hit distance given the record's footprint `scale`; infinite on a miss.
+    pub fn distance(&self, scale: f32) -> f32 {
+        half::f16::from_bits(self.0[2]).to_f32() * scale
+    }
+
+    pub fn hit(&self) -> bool {
+        half::f16::from_bits(self.0[2]).is_finite()
+    }
 }
+
+/// "No anchor" in a stratum's link.
+pub const NO_LINK: u32 = (1 << 30) - 1;
 
 /// An irradiance cache record.
 #[derive(Debug, Clone)]
@@ -64,6 +104,23 @@ pub struct Record {
     pub offset: f32,
     pub ng: Vec3,
     pub strata: Vec<Stratum>,
+    /// Fraction of the strata traced this frame (1 for brute force and new records).
+    pub reshot: f32,
+    /// The anchor contributing most of the record's irradiance (`NO_LINK` if none).
+    pub dominant_anchor: u32,
+}
+
+impl Record {
+    /// First-order irradiance at (x, n) from the record's gradients (Ward & Heckbert 1992):
+    /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as [`gradients`] computes it.
+    pub fn extrapolate(&self, x: Vec3, n: Vec3) -> Vec3 {
+        let rot = n.cross(self.normal);
+        let dx = x - self.position;
+        self.irradiance
+            + Vec3::from_array(std::array::from_fn(|c| {
+                rot.dot(self.grad_r[c]) + dx.dot(self.grad_t[c])
+            }))
+    }
 }
 
 /// Irradiance-cache settings ([`CacheParams::default`] = the `production` preset).
@@ -92,6 +149,50 @@ impl Default for CacheParams {
             max_age: 2,
         }
     }
+}
+
+/// What [`IrradianceCache::interpolate`] found.
+#[derive(Debug, Clone, Copy)]
+pub struct Interpolated {
+    pub irradiance: Vec3,
+    /// Weighted fraction of the contributing records' strata traced this frame.
+    pub reshot: f32,
+    /// The record with the largest weight.
+    pub dominant_record: u32,
+}
+
+/// Turns one gather's hits into strata and their radiance: the method's part of a gather
+/// (brute force estimates every hit; anchors link static hits to anchors). Arguments: the
+/// records' footprints (distance units) and their hits, in record order.
+pub type Resolve<'a> =
+    dyn FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<(Vec<Stratum>, Vec<Vec3>)> + 'a;
+
+/// The brute-force resolver: radiance at every hit from `radiance`, no links.
+pub fn estimate_all(
+    footprints: &[f32],
+    hits: Vec<Vec<GatherHit>>,
+    radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
+    hits.into_par_iter()
+        .zip(footprints.par_iter())
+        .map(|(h, &scale)| {
+            let strata = h
+                .iter()
+                .map(|g| {
+                    let flags = match &g.sp {
+                        Some(sp) if sp.hit.motion == Motion::Dynamic => HIT_DYNAMIC,
+                        _ => 0,
+                    };
+                    Stratum::new(NO_LINK, flags, g.distance, scale)
+                })
+                .collect();
+            let rad = h
+                .iter()
+                .map(|g| g.sp.as_ref().map_or(Vec3::ZERO, radiance))
+                .collect();
+            (strata, rad)
+        })
+        .collect()
 }
 
 /// Where a gather ray went, before its radiance is estimated.
@@ -192,13 +293,21 @@ impl IrradianceCache {
 
     /// Interpolated irradiance at (x, n) from records whose weight exceeds 1/a, with
     /// gradients; `None` where no record is valid. `used` receives contributing records.
-    pub fn interpolate(&self, x: Vec3, n: Vec3, a: f32, used: &mut Vec<u32>) -> Option<Vec3> {
+    pub fn interpolate(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        a: f32,
+        used: &mut Vec<u32>,
+    ) -> Option<Interpolated> {
         if self.records.is_empty() {
             return None;
         }
         let r2 = self.max_radius * self.max_radius * a * a;
         let mut sum = Vec3::ZERO;
         let mut wsum = 0.0f32;
+        let mut reshot = 0.0f32;
+        let mut dominant = (0.0f32, NO_LINK);
         let found = self
             .tree
             .within_unsorted::<SquaredEuclidean>(&x.to_array(), r2.max(f32::MIN_POSITIVE));
@@ -210,19 +319,19 @@ impl IrradianceCache {
             if w <= 1.0 / a {
                 continue;
             }
-            let rot = r.normal.cross(n);
-            let dx = x - r.position;
-            let e = r.irradiance
-                + Vec3::new(
-                    rot.dot(r.grad_r[0]) + dx.dot(r.grad_t[0]),
-                    rot.dot(r.grad_r[1]) + dx.dot(r.grad_t[1]),
-                    rot.dot(r.grad_r[2]) + dx.dot(r.grad_t[2]),
-                );
-            sum += w * e.max(Vec3::ZERO);
+            sum += w * r.extrapolate(x, n).max(Vec3::ZERO);
             wsum += w;
+            reshot += w * r.reshot;
+            if w > dominant.0 {
+                dominant = (w, i as u32);
+            }
             used.push(i as u32);
         }
-        (wsum > 0.0).then(|| sum / wsum)
+        (wsum > 0.0).then(|| Interpolated {
+            irradiance: sum / wsum,
+            reshot: reshot / wsum,
+            dominant_record: dominant.1,
+        })
     }
 
     /// True if some record is valid at (x, n).
@@ -237,75 +346,86 @@ impl IrradianceCache {
             .any(|f| Self::weight(&self.records[f.item as usize], x, n) > 1.0 / a)
     }
 
-    /// Traces the gather rays of a record at (x, n): where each stratum's ray goes.
+    /// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the
+    /// jitter inside the stratum depends on the id only, so a record's rays are the same in
+    /// every frame.
+    pub fn stratum_dir(ns: Vec3, id: u32, p: &CacheParams, s: u32) -> Vec3 {
+        let [m, n] = p.strata;
+        let (t, b) = basis(ns);
+        let seed = hash(&[id, 0x6a7e_0001]);
+        let (j, k) = (s / n, s % n);
+        let u = sobol_burley::sample(s, 0, seed);
+        let v = sobol_burley::sample(s, 1, seed);
+        let (sin2, phi) = stratum_direction(m, n, j, k, u, v);
+        let st = sin2.sqrt();
+        (t * (st * phi.cos()) + b * (st * phi.sin()) + ns * (1.0 - sin2).max(0.0).sqrt())
+            .normalize()
+    }
+
+    /// Traces stratum `s` of the record at `sp`.
+    pub fn trace_stratum(
+        frame: &FrameScene,
+        sp: &SurfacePoint,
+        id: u32,
+        p: &CacheParams,
+        s: u32,
+    ) -> GatherHit {
+        let dir = Self::stratum_dir(sp.ns, id, p, s);
+        let miss = GatherHit {
+            sp: None,
+            distance: f32::INFINITY,
+        };
+        if dir.dot(sp.ng) <= 0.0 {
+            return miss;
+        }
+        let o = sp.spawn();
+        match frame.accel.closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            o,
+            dir,
+            f32::INFINITY,
+        ) {
+            Some(h) => GatherHit {
+                sp: Some(SurfacePoint::new(frame, h, o, dir)),
+                distance: h.t,
+            },
+            None => miss,
+        }
+    }
+
+    /// Traces every gather ray of a record at `sp`.
     pub fn trace_strata(
         frame: &FrameScene,
         sp: &SurfacePoint,
         id: u32,
         p: &CacheParams,
     ) -> Vec<GatherHit> {
-        let [m, n] = p.strata;
-        let (t, b) = basis(sp.ns);
-        let o = sp.spawn();
-        let mut out = Vec::with_capacity((m * n) as usize);
-        let seed = hash(&[id, 0x6a7e_0001]);
-        for j in 0..m {
-            for k in 0..n {
-                let s = j * n + k;
-                let u = sobol_burley::sample(s, 0, seed);
-                let v = sobol_burley::sample(s, 1, seed);
-                let (sin2, phi) = stratum_direction(m, n, j, k, u, v);
-                let st = sin2.sqrt();
-                let dir = (t * (st * phi.cos())
-                    + b * (st * phi.sin())
-                    + sp.ns * (1.0 - sin2).max(0.0).sqrt())
-                .normalize();
-                if dir.dot(sp.ng) <= 0.0 {
-                    out.push(GatherHit {
-                        sp: None,
-                        distance: f32::INFINITY,
-                    });
-                    continue;
-                }
-                match frame.accel.closest(
-                    &frame.static_geometry,
-                    &frame.dynamic_geometry,
-                    o,
-                    dir,
-                    f32::INFINITY,
-                ) {
-                    Some(h) => out.push(GatherHit {
-                        sp: Some(SurfacePoint::new(frame, h, o, dir)),
-                        distance: h.t,
-                    }),
-                    None => out.push(GatherHit {
-                        sp: None,
-                        distance: f32::INFINITY,
-                    }),
-                }
-            }
-        }
-        out
+        (0..p.strata[0] * p.strata[1])
+            .map(|s| Self::trace_stratum(frame, sp, id, p, s))
+            .collect()
     }
 
     /// Completes a record from its strata: irradiance E = π/(MN) Σ L, harmonic-mean radius
     /// clamped to [min, max] footprints, and gradients.
+    #[allow(clippy::too_many_arguments)] // a record's every part
     pub fn finish_record(
         sp: &SurfacePoint,
         motion: Motion,
         id: u32,
         footprint: f32,
         strata: Vec<Stratum>,
+        radiance: &[Vec3],
         p: &CacheParams,
         frame: i32,
     ) -> Record {
         let [m, n] = p.strata;
         let scale = PI / (m * n) as f32;
-        let irradiance = strata.iter().map(|s| s.radiance).sum::<Vec3>() * scale;
+        let irradiance = radiance.iter().sum::<Vec3>() * scale;
         let inv: f32 = strata
             .iter()
-            .filter(|s| s.distance.is_finite())
-            .map(|s| 1.0 / s.distance.max(f32::MIN_POSITIVE))
+            .filter(|s| s.hit())
+            .map(|s| 1.0 / s.distance(footprint).max(f32::MIN_POSITIVE))
             .sum();
         let harmonic = if inv > 0.0 {
             (m * n) as f32 / inv
@@ -319,7 +439,7 @@ impl IrradianceCache {
             p.max_spacing_px * footprint / p.error,
         );
         let r_min = p.min_spacing_px * footprint / p.error;
-        let (grad_r, mut grad_t) = gradients(&strata, sp.ns, m, n, r_min);
+        let (grad_r, mut grad_t) = gradients(&strata, radiance, footprint, sp.ns, m, n, r_min);
         // Gradient limiting (Křivánek et al. 2006): extrapolation across the region where the
         // record is valid (a·R_i) may change each channel by at most its own value, so noisy
         // radiance next to a corner cannot turn into a large gradient.
@@ -344,6 +464,8 @@ impl IrradianceCache {
             offset: sp.offset,
             ng: sp.ng,
             strata,
+            reshot: 1.0,
+            dominant_anchor: NO_LINK,
         }
     }
 
@@ -353,30 +475,35 @@ impl IrradianceCache {
         frame: &FrameScene,
         p: &CacheParams,
         frame_number: i32,
-        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
         let t0 = std::time::Instant::now();
         let hits: Vec<Vec<GatherHit>> = self
             .records
             .par_iter()
-            .map(|r| {
-                let sp = record_point(r);
-                Self::trace_strata(frame, &sp, r.id, p)
-            })
+            .map(|r| Self::trace_strata(frame, &r.surface_point(), r.id, p))
             .collect();
         timings.final_gathering += t0.elapsed().as_secs_f64();
         timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
         let t1 = std::time::Instant::now();
+        let footprints: Vec<f32> = self.records.iter().map(|r| r.footprint).collect();
+        let resolved = resolve(&footprints, hits);
         let updated: Vec<Record> = self
             .records
             .par_iter()
-            .zip(hits)
-            .map(|(r, h)| {
-                let sp = record_point(r);
-                let strata = estimate(&h, radiance);
-                let mut new =
-                    Self::finish_record(&sp, r.motion, r.id, r.footprint, strata, p, frame_number);
+            .zip(resolved)
+            .map(|(r, (strata, rad))| {
+                let mut new = Self::finish_record(
+                    &r.surface_point(),
+                    r.motion,
+                    r.id,
+                    r.footprint,
+                    strata,
+                    &rad,
+                    p,
+                    frame_number,
+                );
                 new.last_used = r.last_used;
                 new
             })
@@ -396,7 +523,7 @@ impl IrradianceCache {
         height: u32,
         p: &CacheParams,
         frame_number: i32,
-        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
         let coarsest = 16u32;
@@ -426,7 +553,7 @@ impl IrradianceCache {
                     (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
                 })
                 .collect();
-            self.add_records(frame, &needed, height, p, frame_number, radiance, timings);
+            self.add_records(frame, &needed, height, p, frame_number, resolve, timings);
             if spacing == 1 {
                 break;
             }
@@ -443,7 +570,7 @@ impl IrradianceCache {
         height: u32,
         p: &CacheParams,
         frame_number: i32,
-        radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
+        resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
         if points.is_empty() {
@@ -460,19 +587,23 @@ impl IrradianceCache {
         timings.final_gathering += t0.elapsed().as_secs_f64();
         timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
         let t1 = std::time::Instant::now();
+        let footprints: Vec<f32> = points
+            .iter()
+            .map(|(_, sp)| pixel_footprint(&frame.camera, sp.position, height))
+            .collect();
+        let resolved = resolve(&footprints, hits);
         let records: Vec<Record> = points
             .par_iter()
-            .zip(hits)
+            .zip(resolved)
             .enumerate()
-            .map(|(i, ((_, sp), h))| {
-                let footprint = pixel_footprint(&frame.camera, sp.position, height);
-                let strata = estimate(&h, radiance);
+            .map(|(i, ((_, sp), (strata, rad)))| {
                 Self::finish_record(
                     sp,
                     sp.hit.motion,
                     first_id + i as u32,
-                    footprint,
+                    footprints[i],
                     strata,
+                    &rad,
                     p,
                     frame_number,
                 )
@@ -482,6 +613,12 @@ impl IrradianceCache {
         for r in records {
             self.insert(r);
         }
+    }
+
+    /// Replaces every record (same count, same order) and rebuilds the lookup tree.
+    pub fn replace_records(&mut self, records: Vec<Record>) {
+        self.records = records;
+        self.rebuild_tree();
     }
 
     /// Marks records as used in `frame`.
@@ -502,45 +639,24 @@ pub struct GatherTimings {
     pub rays: u64,
 }
 
-/// A surface point at a record, for re-gathering from its own position and normal.
-fn record_point(r: &Record) -> SurfacePoint {
-    SurfacePoint {
-        position: r.position,
-        ng: r.ng,
-        ns: r.normal,
-        uv: glam::Vec2::ZERO,
-        offset: r.offset,
-        material: 0,
-        front: true,
-        hit: crate::accel::Hit {
-            t: 0.0,
-            motion: r.motion,
-            triangle: 0,
-        },
+impl Record {
+    /// The surface point of the record, for re-gathering from its own position and normal.
+    pub fn surface_point(&self) -> SurfacePoint {
+        SurfacePoint {
+            position: self.position,
+            ng: self.ng,
+            ns: self.normal,
+            uv: glam::Vec2::ZERO,
+            offset: self.offset,
+            material: 0,
+            front: true,
+            hit: crate::accel::Hit {
+                t: 0.0,
+                motion: self.motion,
+                triangle: 0,
+            },
+        }
     }
-}
-
-/// Strata from gather hits with radiance from `radiance` (the method's estimate).
-fn estimate(hits: &[GatherHit], radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync)) -> Vec<Stratum> {
-    hits.iter()
-        .map(|h| match &h.sp {
-            Some(sp) => Stratum {
-                distance: h.distance,
-                flags: HIT_ANY
-                    | if sp.hit.motion == Motion::Dynamic {
-                        HIT_DYNAMIC
-                    } else {
-                        0
-                    },
-                radiance: radiance(sp),
-            },
-            None => Stratum {
-                distance: f32::INFINITY,
-                flags: 0,
-                radiance: Vec3::ZERO,
-            },
-        })
-        .collect()
 }
 
 /// Rotational and translational irradiance gradients from cosine-weighted strata (Ward &
@@ -552,11 +668,20 @@ fn estimate(hits: &[GatherHit], radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync
 ///
 /// Distances below `r_min` (the record's smallest radius) count as `r_min`: a gather ray that
 /// grazes a corner says little about how irradiance changes over the record's extent.
-fn gradients(strata: &[Stratum], n: Vec3, m: u32, nn: u32, r_min: f32) -> ([Vec3; 3], [Vec3; 3]) {
+fn gradients(
+    strata: &[Stratum],
+    radiance: &[Vec3],
+    scale: f32,
+    n: Vec3,
+    m: u32,
+    nn: u32,
+    r_min: f32,
+) -> ([Vec3; 3], [Vec3; 3]) {
     let (t, b) = basis(n);
     let mut gr = [Vec3::ZERO; 3];
     let mut gt = [Vec3::ZERO; 3];
-    let at = |j: u32, k: u32| &strata[(j * nn + (k % nn)) as usize];
+    let idx = |j: u32, k: u32| (j * nn + (k % nn)) as usize;
+    let dist = |i: usize| strata[i].distance(scale);
     for k in 0..nn {
         let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
         let phi_m = 2.0 * PI * k as f32 / nn as f32;
@@ -567,24 +692,24 @@ fn gradients(strata: &[Stratum], n: Vec3, m: u32, nn: u32, r_min: f32) -> ([Vec3
         let mut theta_term = Vec3::ZERO;
         let mut phi_term = Vec3::ZERO;
         for j in 0..m {
-            let s = at(j, k);
+            let s = idx(j, k);
             let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
             let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
-            rot -= tan_c * s.radiance;
+            rot -= tan_c * radiance[s];
             let sin_m = (j as f32 / m as f32).sqrt();
             let sin_p = ((j + 1) as f32 / m as f32).sqrt();
             if j > 0 {
-                let prev = at(j - 1, k);
-                let r = prev.distance.min(s.distance).max(r_min);
+                let prev = idx(j - 1, k);
+                let r = dist(prev).min(dist(s)).max(r_min);
                 if r.is_finite() && r > 0.0 {
                     let cos2 = 1.0 - sin_m * sin_m;
-                    theta_term += (sin_m * cos2 / r) * (s.radiance - prev.radiance);
+                    theta_term += (sin_m * cos2 / r) * (radiance[s] - radiance[prev]);
                 }
             }
-            let left = at(j, k + nn - 1);
-            let r = left.distance.min(s.distance).max(r_min);
+            let left = idx(j, k + nn - 1);
+            let r = dist(left).min(dist(s)).max(r_min);
             if r.is_finite() && r > 0.0 {
-                phi_term += ((sin_p - sin_m) / r) * (s.radiance - left.radiance);
+                phi_term += ((sin_p - sin_m) / r) * (radiance[s] - radiance[left]);
             }
         }
         rot *= PI / (m * nn) as f32;
@@ -595,4 +720,166 @@ fn gradients(strata: &[Stratum], n: Vec3, m: u32, nn: u32, r_min: f32) -> ([Vec3
         }
     }
     (gr, gt)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::frame::triangle;
+
+    #[test]
+    fn strata_fit_in_six_bytes_and_round_trip() {
+        assert_eq!(size_of::<Stratum>(), 6);
+        for scale in [1e-3f32, 1.0, 1e4] {
+            let s = Stratum::new(123_456, HIT_DYNAMIC, 37.5 * scale, 0.01 * scale);
+            assert_eq!(s.link(), Some(123_456));
+            assert_eq!(s.flags(), HIT_DYNAMIC);
+            assert!((s.distance(0.01 * scale) - 37.5 * scale).abs() < 37.5 * scale * 1e-3);
+            let miss = Stratum::new(NO_LINK, 0, f32::INFINITY, scale);
+            assert!(!miss.hit() && miss.link().is_none());
+        }
+    }
+    use crate::scene::{FrameScene, Geometry, Material, StaticSet, TriangleShading};
+    use glam::Vec2;
+
+    /// A floor (y = 0) and a wall (x = 0, height 1, long in z) whose face towards +x emits
+    /// radiance 1 into the gather (the radiance estimate below). From the floor at distance
+    /// d the wall's view factor is F = (1 − d/√(d² + 1))/2, so E = πF and
+    /// dE/dd = −(π/2)/(d² + 1)^{3/2}.
+    fn scene() -> FrameScene {
+        let mut g = Geometry::default();
+        let quad = |g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3| {
+            for t in [triangle(a, b, c), triangle(a, c, d)] {
+                let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
+                g.triangles.push(t);
+                g.shading.push(TriangleShading {
+                    normals: [n; 3],
+                    uvs: [Vec2::ZERO; 3],
+                    material: 0,
+                    prim: 0,
+                });
+            }
+        };
+        let l = 200.0;
+        quad(
+            &mut g,
+            Vec3::new(-l, 0.0, -l),
+            Vec3::new(-l, 0.0, l),
+            Vec3::new(l, 0.0, l),
+            Vec3::new(l, 0.0, -l),
+        );
+        quad(
+            &mut g,
+            Vec3::new(0.0, 0.0, -l),
+            Vec3::new(0.0, 1.0, -l),
+            Vec3::new(0.0, 1.0, l),
+            Vec3::new(0.0, 0.0, l),
+        );
+        let statics = StaticSet::new(g);
+        let camera = crate::scene::FrameCamera::look_at(
+            Vec3::new(3.0, 2.0, 0.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            1.0,
+            1.0,
+        );
+        FrameScene::new(
+            &statics,
+            Geometry::default(),
+            Vec::new(),
+            camera,
+            &[Material::default()],
+        )
+    }
+
+    fn wall_radiance(sp: &SurfacePoint) -> Vec3 {
+        if sp.ng.x > 0.5 { Vec3::ONE } else { Vec3::ZERO }
+    }
+
+    fn record_at(frame: &FrameScene, d: f32, p: &CacheParams) -> Record {
+        let o = Vec3::new(d, 0.5, 0.25);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let sp = SurfacePoint::new(frame, hit, o, -Vec3::Y);
+        let hits = IrradianceCache::trace_strata(frame, &sp, 3, p);
+        let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
+        IrradianceCache::finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, p, 0)
+    }
+
+    #[test]
+    fn irradiance_and_translational_gradient_match_the_view_factor() {
+        let frame = scene();
+        let p = CacheParams {
+            strata: [40, 120],
+            ..CacheParams::default()
+        };
+        for d in [0.5f32, 1.0, 2.0] {
+            let r = record_at(&frame, d, &p);
+            let e = std::f32::consts::FRAC_PI_2 * (1.0 - d / (d * d + 1.0).sqrt());
+            let de = -std::f32::consts::FRAC_PI_2 / (d * d + 1.0).powf(1.5);
+            assert!(
+                (r.irradiance.x - e).abs() < 0.025 * e,
+                "d {d}: E {} vs {e}",
+                r.irradiance.x
+            );
+            let g = r.grad_t[0];
+            assert!(
+                (g.x - de).abs() < 0.1 * de.abs(),
+                "d {d}: dE/dx {} vs {de}",
+                g.x
+            );
+            assert!(
+                g.y.abs() < 0.05 * de.abs() && g.z.abs() < 0.05 * de.abs(),
+                "d {d}: gradient {g}"
+            );
+        }
+    }
+
+    /// Tilting the normal towards the wall by δ changes E by (n × n')·∇_r E to first order;
+    /// compared with a second gather at the tilted normal.
+    #[test]
+    fn rotational_gradient_predicts_a_tilted_gather() {
+        let frame = scene();
+        let p = CacheParams {
+            strata: [40, 120],
+            ..CacheParams::default()
+        };
+        let r = record_at(&frame, 1.0, &p);
+        let delta = 0.05f32;
+        let n2 = Vec3::new(-delta.sin(), delta.cos(), 0.0);
+        let o = Vec3::new(1.0, 0.5, 0.25);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let mut sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        sp.ns = n2;
+        let hits = IrradianceCache::trace_strata(&frame, &sp, 3, &p);
+        let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
+        let tilted =
+            IrradianceCache::finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, &p, 0);
+        let predicted = r.extrapolate(r.position, n2).x;
+        let actual = tilted.irradiance.x;
+        let change = actual - r.irradiance.x;
+        assert!(change > 0.0, "tilting towards the wall gathers more of it");
+        assert!(
+            (predicted - actual).abs() < 0.15 * change,
+            "predicted {predicted}, gathered {actual} (from {})",
+            r.irradiance.x
+        );
+    }
 }

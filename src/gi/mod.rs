@@ -12,8 +12,11 @@
 //! like. Cache records persist between frames (positions and ids, hence gather directions):
 //! static records are re-gathered each frame, dynamic ones are re-placed (§4.2, §4.3).
 
+pub mod anchors;
 pub mod cache;
+pub mod coherent;
 pub mod photons;
+pub mod visibility;
 
 use std::f32::consts::FRAC_1_PI;
 use std::num::NonZero;
@@ -31,6 +34,7 @@ use crate::render::{
 use crate::sampling::Sampler;
 use crate::scene::FrameScene;
 use cache::{CacheParams, GatherTimings, IrradianceCache};
+use coherent::{AnchorParams, AnchorStats};
 use photons::{PhotonMap, cosine_direction};
 
 /// Settings of the photon-mapping methods ([`GiParams::preset`] gives the presets).
@@ -43,6 +47,8 @@ pub struct GiParams {
     /// Photon bounces at most.
     pub max_bounces: u32,
     pub cache: CacheParams,
+    /// `anchors`: anchor density and reuse heuristics.
+    pub anchors: AnchorParams,
     /// `path-trace`: samples per pixel and maximum path length.
     pub path_samples: u32,
     pub path_depth: u32,
@@ -73,6 +79,7 @@ impl GiParams {
                     max_spacing_px: 32.0,
                     ..cache
                 },
+                anchors: AnchorParams::default(),
                 path_samples: 64,
                 path_depth: 8,
             },
@@ -81,6 +88,7 @@ impl GiParams {
                 k: 64,
                 max_bounces: 12,
                 cache,
+                anchors: AnchorParams::default(),
                 path_samples: 256,
                 path_depth: 12,
             },
@@ -95,6 +103,7 @@ impl GiParams {
                     max_spacing_px: 16.0,
                     ..cache
                 },
+                anchors: AnchorParams::default(),
                 path_samples: 1024,
                 path_depth: 16,
             },
@@ -142,10 +151,12 @@ impl PrecomputedIrradiance {
 #[derive(Default)]
 pub struct Session {
     pub cache: IrradianceCache,
+    /// The anchor method's anchors, kept from frame to frame.
+    pub anchors: Option<anchors::AnchorSet>,
 }
 
 /// Timings and counts of one frame's global illumination (the paper's Table 1 rows).
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct GiStats {
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
@@ -157,6 +168,16 @@ pub struct GiStats {
     pub rays_shot: u64,
     /// Pixel samples no record covered, gathered on the spot.
     pub uncached_samples: u64,
+    /// The anchor method's statistics.
+    pub anchors: Option<AnchorStats>,
+}
+
+/// The photon-mapping methods that shade from the irradiance cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CachedMethod {
+    BruteForce,
+    Precomputed,
+    Anchors,
 }
 
 /// Which estimate a gather hit uses.
@@ -185,7 +206,7 @@ pub fn render_cached(
     m: Materials,
     session: &mut Session,
     params: &GiParams,
-    precomputed: bool,
+    method: CachedMethod,
     spp: u32,
     light_samples: u32,
     width: u32,
@@ -199,7 +220,8 @@ pub fn render_cached(
     st.photon_tracing = t.elapsed().as_secs_f64();
     st.photons = pm.photons.len() as u64;
     let t = Instant::now();
-    let pc = precomputed.then(|| PrecomputedIrradiance::new(&pm, params.k as usize));
+    let pc = (method == CachedMethod::Precomputed)
+        .then(|| PrecomputedIrradiance::new(&pm, params.k as usize));
     st.irradiance_estimation = t.elapsed().as_secs_f64();
     let est = match &pc {
         Some(pc) => GatherEstimate::Precomputed(pc),
@@ -208,17 +230,37 @@ pub fn render_cached(
     let radiance = |sp: &SurfacePoint| est.radiance(sp, m);
     let mut gt = GatherTimings::default();
     let cache = &mut session.cache;
-    cache.expire(frame_number, params.cache.max_age);
-    cache.regather(frame, &params.cache, frame_number, &radiance, &mut gt);
-    cache.place(
-        frame,
-        width,
-        height,
-        &params.cache,
-        frame_number,
-        &radiance,
-        &mut gt,
-    );
+    if method == CachedMethod::Anchors {
+        st.anchors = Some(coherent::update(
+            frame,
+            m,
+            cache,
+            &mut session.anchors,
+            &pm,
+            &params.cache,
+            &params.anchors,
+            params.k as usize,
+            width,
+            height,
+            seed,
+            frame_number,
+            &mut gt,
+        ));
+    } else {
+        let mut brute =
+            |fp: &[f32], hits: Vec<Vec<cache::GatherHit>>| cache::estimate_all(fp, hits, &radiance);
+        cache.expire(frame_number, params.cache.max_age);
+        cache.regather(frame, &params.cache, frame_number, &mut brute, &mut gt);
+        cache.place(
+            frame,
+            width,
+            height,
+            &params.cache,
+            frame_number,
+            &mut brute,
+            &mut gt,
+        );
+    }
     st.final_gathering = gt.final_gathering;
     st.irradiance_estimation += gt.irradiance_estimation;
     st.rays_shot = gt.rays;
@@ -267,7 +309,21 @@ pub fn render_cached(
             let found = cache_ref
                 .interpolate(sp.position, sp.ns, a, &mut row.used)
                 .or_else(|| cache_ref.interpolate(sp.position, sp.ns, 2.0 * a, &mut row.used));
-            let e = found.unwrap_or_else(|| {
+            match &found {
+                Some(i) => {
+                    let anchor = cache_ref.records[i.dominant_record as usize].dominant_anchor;
+                    acc.note_cache(
+                        if anchor == cache::NO_LINK {
+                            0
+                        } else {
+                            anchor + 1
+                        },
+                        i.reshot,
+                    );
+                }
+                None => acc.note_cache(0, 1.0),
+            }
+            let e = found.map(|i| i.irradiance).unwrap_or_else(|| {
                 row.uncached += 1;
                 let hits =
                     IrradianceCache::trace_strata(frame, &sp, pixel ^ 0x8000_0000, &params.cache);
@@ -290,6 +346,8 @@ pub fn render_cached(
         acc.finish(spp)
     });
     let wall = t.elapsed().as_secs_f64();
+    let mut img = img;
+    img.keep_cache_aovs();
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
     used.sort_unstable();
     used.dedup();
@@ -398,5 +456,7 @@ pub fn path_trace(
         }
         acc.finish(spp)
     });
+    let mut img = img;
+    img.drop_cache_aovs();
     (img, RenderCounts::sum(&rows))
 }

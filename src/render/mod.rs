@@ -202,6 +202,22 @@ pub struct FrameImage {
     pub indirect: Vec<[f32; 3]>,
     /// Camera-space depth along the view axis of the nearest hit; `f32::MAX` where nothing is hit.
     pub depth: Vec<f32>,
+    /// Cached methods only (else `None`): `anchor_id` and `reshoot` AOVs, see [`Pixel`].
+    pub anchor_id: Option<Vec<u32>>,
+    pub reshoot: Option<Vec<f32>>,
+}
+
+impl FrameImage {
+    /// Drops the cache AOVs (for methods without a cache).
+    pub fn drop_cache_aovs(&mut self) {
+        self.anchor_id = None;
+        self.reshoot = None;
+    }
+
+    /// Keeps the cache AOVs (they are filled by [`render_rows`]).
+    pub fn keep_cache_aovs(&mut self) {
+        debug_assert!(self.anchor_id.is_some());
+    }
 }
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -217,6 +233,10 @@ pub struct Pixel {
     pub direct: [f32; 3],
     pub indirect: [f32; 3],
     pub depth: f32,
+    /// Cached methods: id + 1 of the anchor feeding the first hit's dominant record (0: none).
+    pub anchor_id: u32,
+    /// Cached methods: weighted fraction of the contributing strata re-traced this frame.
+    pub reshoot: f32,
 }
 
 /// Sums a pixel's samples: emission, direct and indirect radiance, coverage and depth.
@@ -227,6 +247,9 @@ pub struct Accumulator {
     indirect: Vec3,
     hits: f32,
     depth: f32,
+    anchor: Option<u32>,
+    reshoot: f32,
+    cached: f32,
 }
 
 impl Default for Accumulator {
@@ -237,6 +260,9 @@ impl Default for Accumulator {
             indirect: Vec3::ZERO,
             hits: 0.0,
             depth: f32::MAX,
+            anchor: None,
+            reshoot: 0.0,
+            cached: 0.0,
         }
     }
 }
@@ -257,6 +283,14 @@ impl Accumulator {
         self.indirect += indirect;
     }
 
+    /// Records what the cache gave a sample: the anchor id (kept from the first sample) and
+    /// the fraction of its strata re-traced this frame.
+    pub fn note_cache(&mut self, anchor_id: u32, reshoot: f32) {
+        self.anchor.get_or_insert(anchor_id);
+        self.reshoot += reshoot;
+        self.cached += 1.0;
+    }
+
     /// The box-filtered pixel over `spp` samples (misses count as black, transparent).
     /// A non-finite sum (which no valid input produces) becomes black rather than poisoning
     /// compositing.
@@ -273,6 +307,12 @@ impl Accumulator {
             direct: d.to_array(),
             indirect: i.to_array(),
             depth: self.depth,
+            anchor_id: self.anchor.unwrap_or(0),
+            reshoot: if self.cached > 0.0 {
+                self.reshoot / self.cached
+            } else {
+                0.0
+            },
         }
     }
 }
@@ -300,17 +340,24 @@ pub fn render_rows<S: Default + Send>(
         direct: Vec::with_capacity(n),
         indirect: Vec::with_capacity(n),
         depth: Vec::with_capacity(n),
+        anchor_id: Some(Vec::with_capacity(n)),
+        reshoot: Some(Vec::with_capacity(n)),
     };
     let mut states = Vec::with_capacity(height as usize);
+    let (mut ids, mut reshoot) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for (row, state) in rows {
         for p in row {
             img.beauty.push(p.beauty);
             img.direct.push(p.direct);
             img.indirect.push(p.indirect);
             img.depth.push(p.depth);
+            ids.push(p.anchor_id);
+            reshoot.push(p.reshoot);
         }
         states.push(state);
     }
+    img.anchor_id = Some(ids);
+    img.reshoot = Some(reshoot);
     (img, states)
 }
 
@@ -373,5 +420,7 @@ pub fn render_direct(
         }
         acc.finish(spp)
     });
+    let mut img = img;
+    img.drop_cache_aovs();
     (img, RenderCounts::sum(&rows))
 }

@@ -63,6 +63,7 @@ fn blank_stats() -> FrameStats {
         timings_s: Default::default(),
         counts: Default::default(),
         memory: Default::default(),
+        anchor_reuse: None,
     }
 }
 

@@ -1,3 +1,4 @@
+mod anchors;
 mod cli;
 pub mod common;
 mod gi;

@@ -48,12 +48,14 @@ fn exr_channels_and_values_read_back_with_openexr() {
             "G",
             "R",
             "Z",
+            "anchor_id",
             "direct.B",
             "direct.G",
             "direct.R",
             "indirect.B",
             "indirect.G",
-            "indirect.R"
+            "indirect.R",
+            "reshoot"
         ]
     );
     // Values equal an in-memory render of the same frame, bit for bit.
@@ -80,6 +82,15 @@ fn exr_channels_and_values_read_back_with_openexr() {
         assert_eq!(z[i], img.depth[i], "Z at {i}");
     }
     assert!(r.iter().any(|&x| x > 0.0));
+    // anchor_id is a 32-bit unsigned channel: exact integers, as many anchors as there are.
+    assert_eq!(v["channels"]["anchor_id"]["type"], "uint32");
+    let ids = ch("anchor_id");
+    let mine = img.anchor_id.as_ref().unwrap();
+    for i in 0..ids.len() {
+        assert_eq!(ids[i] as u32, mine[i], "anchor_id at {i}");
+    }
+    assert!(mine.iter().any(|&id| id > 0));
+    assert_eq!(ch("reshoot"), *img.reshoot.as_ref().unwrap());
 }
 
 #[test]
