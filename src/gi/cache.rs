@@ -17,8 +17,6 @@
 use std::f32::consts::PI;
 
 use glam::Vec3;
-use kiddo::SquaredEuclidean;
-use kiddo::float::kdtree::KdTree;
 use rayon::prelude::*;
 
 use super::photons::basis;
@@ -202,23 +200,69 @@ pub struct GatherHit {
     pub distance: f32,
 }
 
-/// The cache with a kd-tree over record positions.
-pub struct IrradianceCache {
-    pub records: Vec<Record>,
-    tree: KdTree<f32, u64, 3, 64, u32>,
-    max_radius: f32,
-    next_id: u32,
+/// Records by the space their validity spheres cover: a multi-level hashed grid (in the
+/// spirit of Ward's octree). A record of reach ρ = `REACH`·a·R_i sits at the level whose
+/// cells are at least 2ρ wide, in the ≤ 8 cells its sphere overlaps, so a lookup reads one
+/// cell per level and meets only records that can be valid there.
+#[derive(Default)]
+struct RecordGrid {
+    /// Cell size of level 0 (set from the first record: scale-free).
+    base: f32,
+    /// Ward's a the grid was built for.
+    error: f32,
+    cells: rustc_hash::FxHashMap<(i32, i32, i32, i32), Vec<u32>>,
+    levels: std::collections::BTreeSet<i32>,
 }
 
-impl Default for IrradianceCache {
-    fn default() -> Self {
-        IrradianceCache {
-            records: Vec::new(),
-            tree: KdTree::new(),
-            max_radius: 0.0,
-            next_id: 0,
-        }
+/// Lookups may relax Ward's threshold up to this factor (the shading fallback uses 2).
+const REACH: f32 = 2.0;
+
+impl RecordGrid {
+    fn cell(&self, level: i32, p: Vec3) -> (i32, i32, i32, i32) {
+        let size = self.base * 2f32.powi(level);
+        let c = (p / size).floor();
+        (level, c.x as i32, c.y as i32, c.z as i32)
     }
+
+    fn insert(&mut self, i: u32, r: &Record) {
+        let a = if self.error > 0.0 { self.error } else { 1.0 };
+        let reach = REACH * a * r.radius;
+        if self.base == 0.0 {
+            self.base = (2.0 * reach).max(f32::MIN_POSITIVE);
+        }
+        let level = (2.0 * reach / self.base).log2().ceil().max(-60.0) as i32;
+        let (lo, hi) = (
+            self.cell(level, r.position - reach),
+            self.cell(level, r.position + reach),
+        );
+        for x in lo.1..=hi.1 {
+            for y in lo.2..=hi.2 {
+                for z in lo.3..=hi.3 {
+                    self.cells.entry((level, x, y, z)).or_default().push(i);
+                }
+            }
+        }
+        self.levels.insert(level);
+    }
+
+    /// Records whose sphere may contain `x`, in index order.
+    fn candidates(&self, x: Vec3, out: &mut Vec<u32>) {
+        out.clear();
+        for &l in &self.levels {
+            if let Some(c) = self.cells.get(&self.cell(l, x)) {
+                out.extend_from_slice(c);
+            }
+        }
+        out.sort_unstable();
+    }
+}
+
+/// The cache with its lookup grid.
+#[derive(Default)]
+pub struct IrradianceCache {
+    pub records: Vec<Record>,
+    grid: RecordGrid,
+    next_id: u32,
 }
 
 /// World size of one pixel at `x` as seen by `camera` for an image `height` pixels tall.
@@ -251,13 +295,23 @@ impl IrradianceCache {
         self.records.is_empty()
     }
 
-    /// Rebuilds the kd-tree (after records were removed).
+    /// Rebuilds the lookup grid (after records were removed or changed).
     fn rebuild_tree(&mut self) {
-        self.tree = KdTree::new();
-        self.max_radius = 0.0;
+        let error = self.grid.error;
+        self.grid = RecordGrid {
+            error,
+            ..Default::default()
+        };
         for (i, r) in self.records.iter().enumerate() {
-            self.tree.add(&r.position.to_array(), i as u64);
-            self.max_radius = self.max_radius.max(r.radius);
+            self.grid.insert(i as u32, r);
+        }
+    }
+
+    /// Sets Ward's a the lookups will use (at most `REACH` times it).
+    pub fn set_error(&mut self, a: f32) {
+        if self.grid.error != a {
+            self.grid.error = a;
+            self.rebuild_tree();
         }
     }
 
@@ -269,9 +323,7 @@ impl IrradianceCache {
     }
 
     fn insert(&mut self, r: Record) {
-        self.tree
-            .add(&r.position.to_array(), self.records.len() as u64);
-        self.max_radius = self.max_radius.max(r.radius);
+        self.grid.insert(self.records.len() as u32, &r);
         self.records.push(r);
     }
 
@@ -303,16 +355,16 @@ impl IrradianceCache {
         if self.records.is_empty() {
             return None;
         }
-        let r2 = self.max_radius * self.max_radius * a * a;
+        debug_assert!(
+            a <= REACH * self.grid.error * 1.0001,
+            "lookup beyond the grid's reach"
+        );
         let mut sum = Vec3::ZERO;
         let mut wsum = 0.0f32;
         let mut reshot = 0.0f32;
         let mut dominant = (0.0f32, NO_LINK);
-        let found = self
-            .tree
-            .within_unsorted::<SquaredEuclidean>(&x.to_array(), r2.max(f32::MIN_POSITIVE));
-        let mut idx: Vec<u64> = found.iter().map(|f| f.item).collect();
-        idx.sort_unstable(); // summation order independent of tree layout
+        let mut idx = Vec::new();
+        self.grid.candidates(x, &mut idx);
         for i in idx {
             let r = &self.records[i as usize];
             let w = Self::weight(r, x, n);
@@ -339,11 +391,10 @@ impl IrradianceCache {
         if self.records.is_empty() {
             return false;
         }
-        let r2 = self.max_radius * self.max_radius * a * a;
-        self.tree
-            .within_unsorted::<SquaredEuclidean>(&x.to_array(), r2.max(f32::MIN_POSITIVE))
-            .iter()
-            .any(|f| Self::weight(&self.records[f.item as usize], x, n) > 1.0 / a)
+        let mut idx = Vec::new();
+        self.grid.candidates(x, &mut idx);
+        idx.iter()
+            .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
     }
 
     /// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the

@@ -230,6 +230,7 @@ pub fn render_cached(
     let radiance = |sp: &SurfacePoint| est.radiance(sp, m);
     let mut gt = GatherTimings::default();
     let cache = &mut session.cache;
+    cache.set_error(params.cache.error);
     if method == CachedMethod::Anchors {
         st.anchors = Some(coherent::update(
             frame,
@@ -274,6 +275,8 @@ pub fn render_cached(
         let pixel = y * width + x;
         let sampler = Sampler::new(seed, frame_number, 0, pixel);
         let mut acc = Accumulator::default();
+        type Last = ((crate::scene::Motion, u32), Vec3, Vec3, (u32, f32));
+        let mut last: Option<Last> = None;
         for s in 0..spp {
             let [jx, jy] = sampler.get2(s, 0);
             let (o, d) = frame.camera.ray(
@@ -304,36 +307,71 @@ pub fn render_cached(
                     &mut row.counts.shadow_rays,
                 );
             let t1 = Instant::now();
-            // A sample off the placement grid may fall just outside every record: relax the
-            // threshold twice before gathering on the spot.
-            let found = cache_ref
-                .interpolate(sp.position, sp.ns, a, &mut row.used)
-                .or_else(|| cache_ref.interpolate(sp.position, sp.ns, 2.0 * a, &mut row.used));
-            match &found {
-                Some(i) => {
-                    let anchor = cache_ref.records[i.dominant_record as usize].dominant_anchor;
-                    acc.note_cache(
-                        if anchor == cache::NO_LINK {
-                            0
-                        } else {
-                            anchor + 1
-                        },
-                        i.reshot,
-                    );
-                }
-                None => acc.note_cache(0, 1.0),
-            }
-            let e = found.map(|i| i.irradiance).unwrap_or_else(|| {
-                row.uncached += 1;
-                let hits =
-                    IrradianceCache::trace_strata(frame, &sp, pixel ^ 0x8000_0000, &params.cache);
-                let strata = (params.cache.strata[0] * params.cache.strata[1]) as f32;
-                hits.iter()
-                    .filter_map(|h| h.sp.as_ref())
-                    .map(&radiance)
-                    .sum::<Vec3>()
-                    * (std::f32::consts::PI / strata)
+            // One interpolation per pixel and surface: the pixel's other samples on the same
+            // prim, facing the same way, reuse it (records are valid over several pixels).
+            let reuse = last.filter(|(prim, n, _, _)| {
+                *prim
+                    == (
+                        hit.motion,
+                        frame.geometry(hit.motion).shading[hit.triangle as usize].prim,
+                    )
+                    && n.dot(sp.ns) > 0.999
             });
+            let (e, anchor_id, reshot) = match reuse {
+                Some((_, _, e, (id, r))) => (e, id, r),
+                None => {
+                    // A sample off the placement grid may fall just outside every record:
+                    // relax the threshold twice before gathering on the spot.
+                    let found = cache_ref
+                        .interpolate(sp.position, sp.ns, a, &mut row.used)
+                        .or_else(|| {
+                            cache_ref.interpolate(sp.position, sp.ns, 2.0 * a, &mut row.used)
+                        });
+                    let r = match found {
+                        Some(i) => {
+                            let anchor =
+                                cache_ref.records[i.dominant_record as usize].dominant_anchor;
+                            (
+                                i.irradiance,
+                                if anchor == cache::NO_LINK {
+                                    0
+                                } else {
+                                    anchor + 1
+                                },
+                                i.reshot,
+                            )
+                        }
+                        None => {
+                            row.uncached += 1;
+                            let hits = IrradianceCache::trace_strata(
+                                frame,
+                                &sp,
+                                pixel ^ 0x8000_0000,
+                                &params.cache,
+                            );
+                            let strata = (params.cache.strata[0] * params.cache.strata[1]) as f32;
+                            let e = hits
+                                .iter()
+                                .filter_map(|h| h.sp.as_ref())
+                                .map(&radiance)
+                                .sum::<Vec3>()
+                                * (std::f32::consts::PI / strata);
+                            (e, 0, 1.0)
+                        }
+                    };
+                    last = Some((
+                        (
+                            hit.motion,
+                            frame.geometry(hit.motion).shading[hit.triangle as usize].prim,
+                        ),
+                        sp.ns,
+                        r.0,
+                        (r.1, r.2),
+                    ));
+                    r
+                }
+            };
+            acc.note_cache(anchor_id, reshot);
             row.t_direct += (t1 - t0).as_secs_f64();
             row.t_interp += t1.elapsed().as_secs_f64();
             acc.hit(
