@@ -205,6 +205,7 @@ impl Method {
 
     pub fn parse(s: &str) -> Option<Method> {
         [
+            Method::Anchors,
             Method::Direct,
             Method::BruteForce,
             Method::Precomputed,
@@ -307,6 +308,14 @@ impl MethodSettings {
             return bad(
                 "anchors.d_max",
                 "must be in (0, 1] (a fraction of the scene radius)",
+            );
+        }
+        if a.d_max_absolute
+            .is_some_and(|d| !(d > 0.0 && d.is_finite()))
+        {
+            return bad(
+                "anchors.d_max_absolute",
+                "must be a positive distance in scene units",
             );
         }
         if !(a.photon_radius > 0.0 && a.photon_radius <= 1.0) {

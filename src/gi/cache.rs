@@ -339,8 +339,10 @@ impl IrradianceCache {
         if d.dot(n + r.normal) * 0.5 < -0.05 * r.radius {
             return 0.0;
         }
+        // Capped at 1e4: at a record's own position the weight is infinite, and weighted sums
+        // must stay finite (pixel centres land exactly on records placed there).
         let e = d.length() / r.radius + (1.0 - ndot).max(0.0).sqrt();
-        if e <= 0.0 { f32::MAX } else { 1.0 / e }
+        1.0 / e.max(1e-4)
     }
 
     /// Interpolated irradiance at (x, n) from records whose weight exceeds 1/a, with
@@ -375,9 +377,9 @@ impl IrradianceCache {
             wsum += w;
             reshot += w * r.reshot;
             if w > dominant.0 {
-                dominant = (w, i as u32);
+                dominant = (w, i);
             }
-            used.push(i as u32);
+            used.push(i);
         }
         (wsum > 0.0).then(|| Interpolated {
             irradiance: sum / wsum,

@@ -34,6 +34,8 @@ use crate::scene::{FrameScene, Motion};
 pub struct AnchorParams {
     /// D_max (§3.3.1) as a fraction of the static scene's bounding-sphere radius. Default 0.01.
     pub d_max: f32,
+    /// D_max in scene units instead; overrides `d_max` when set.
+    pub d_max_absolute: Option<f32>,
     /// `constant` D_max, or `importance`-driven from global importons. Default constant.
     pub density: Density,
     /// Radius of the nearest-photon search of Pseudocode 1 (§3.3.2), as a fraction of the
@@ -54,6 +56,7 @@ impl Default for AnchorParams {
     fn default() -> Self {
         AnchorParams {
             d_max: 0.01,
+            d_max_absolute: None,
             density: Density::Constant,
             photon_radius: 0.005,
             normal_cos: 0.9,
@@ -134,7 +137,11 @@ impl Attacher<'_> {
         }
         // §3.3.1: the nearest anchors within D_max; three rejections create a new one.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));
-        let d_max = self.params.d_max * self.scale * factor;
+        let d_max = self
+            .params
+            .d_max_absolute
+            .unwrap_or(self.params.d_max * self.scale)
+            * factor;
         let anchors = &set.anchors;
         let candidates = set
             .tree

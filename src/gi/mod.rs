@@ -277,6 +277,28 @@ pub fn render_cached(
         let mut acc = Accumulator::default();
         type Last = ((crate::scene::Motion, u32), Vec3, Vec3, (u32, f32));
         let mut last: Option<Last> = None;
+        // The pixel centre's surface: interpolation for the pixel's samples on that surface
+        // happens there, which does not move with the per-frame sample jitter.
+        let (co, cd) = frame.camera.ray(
+            (x as f32 + 0.5) / width as f32,
+            (y as f32 + 0.5) / height as f32,
+        );
+        let centre = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                co,
+                cd,
+                f32::INFINITY,
+            )
+            .map(|h| SurfacePoint::new(frame, h, co, cd));
+        let key = |sp: &SurfacePoint| {
+            (
+                sp.hit.motion,
+                frame.geometry(sp.hit.motion).shading[sp.hit.triangle as usize].prim,
+            )
+        };
         for s in 0..spp {
             let [jx, jy] = sampler.get2(s, 0);
             let (o, d) = frame.camera.ray(
@@ -320,12 +342,16 @@ pub fn render_cached(
             let (e, anchor_id, reshot) = match reuse {
                 Some((_, _, e, (id, r))) => (e, id, r),
                 None => {
+                    let at = match &centre {
+                        Some(c) if key(c) == key(&sp) && c.ns.dot(sp.ns) > 0.999 => c,
+                        _ => &sp,
+                    };
                     // A sample off the placement grid may fall just outside every record:
                     // relax the threshold twice before gathering on the spot.
                     let found = cache_ref
-                        .interpolate(sp.position, sp.ns, a, &mut row.used)
+                        .interpolate(at.position, at.ns, a, &mut row.used)
                         .or_else(|| {
-                            cache_ref.interpolate(sp.position, sp.ns, 2.0 * a, &mut row.used)
+                            cache_ref.interpolate(at.position, at.ns, 2.0 * a, &mut row.used)
                         });
                     let r = match found {
                         Some(i) => {
@@ -345,7 +371,7 @@ pub fn render_cached(
                             row.uncached += 1;
                             let hits = IrradianceCache::trace_strata(
                                 frame,
-                                &sp,
+                                at,
                                 pixel ^ 0x8000_0000,
                                 &params.cache,
                             );
@@ -359,15 +385,7 @@ pub fn render_cached(
                             (e, 0, 1.0)
                         }
                     };
-                    last = Some((
-                        (
-                            hit.motion,
-                            frame.geometry(hit.motion).shading[hit.triangle as usize].prim,
-                        ),
-                        sp.ns,
-                        r.0,
-                        (r.1, r.2),
-                    ));
+                    last = Some((key(&sp), sp.ns, r.0, (r.1, r.2)));
                     r
                 }
             };
