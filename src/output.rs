@@ -11,22 +11,7 @@ use serde::Serialize;
 use crate::error::{Error, Result};
 use crate::render::FrameImage;
 
-/// Channels of the EXR, as written (the file stores them sorted by name).
-pub const CHANNELS: &[&str] = &[
-    "R",
-    "G",
-    "B",
-    "A",
-    "direct.R",
-    "direct.G",
-    "direct.B",
-    "indirect.R",
-    "indirect.G",
-    "indirect.B",
-    "Z",
-];
-
-/// Writes `bytes` through `write` to a temporary file beside `path`, then renames it.
+/// Writes a file through `write` to a temporary name beside `path`, then renames it.
 pub fn write_atomic(
     path: &Path,
     write: impl FnOnce(&Path) -> std::result::Result<(), String>,

@@ -595,14 +595,7 @@ impl IrradianceCache {
                         (x as f32 + 0.5) / width as f32,
                         (y as f32 + 0.5) / height as f32,
                     );
-                    let h = frame.accel.closest(
-                        &frame.static_geometry,
-                        &frame.dynamic_geometry,
-                        o,
-                        d,
-                        f32::INFINITY,
-                    )?;
-                    let sp = SurfacePoint::new(frame, h, o, d);
+                    let sp = crate::render::trace(frame, o, d)?;
                     (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
                 })
                 .collect();

@@ -190,14 +190,7 @@ impl Importons {
             .filter_map(|i| {
                 let s = crate::sampling::Sampler::new(seed, 0, 0x1a90_0001, i);
                 let (o, d) = frame.camera.ray(s.get(0, 0), s.get(0, 1));
-                let h = frame.accel.closest(
-                    &frame.static_geometry,
-                    &frame.dynamic_geometry,
-                    o,
-                    d,
-                    f32::INFINITY,
-                )?;
-                let sp = SurfacePoint::new(frame, h, o, d);
+                let sp = crate::render::trace(frame, o, d)?;
                 let d2 = cosine_direction(sp.ns, s.get(0, 2).min(0.999_999_9), s.get(0, 3));
                 let h2 = frame.accel.closest(
                     &frame.static_geometry,

@@ -306,16 +306,10 @@ pub fn render_cached(
                 (y as f32 + jy) / height as f32,
             );
             row.counts.camera_rays += 1;
-            let Some(hit) = frame.accel.closest(
-                &frame.static_geometry,
-                &frame.dynamic_geometry,
-                o,
-                d,
-                f32::INFINITY,
-            ) else {
+            let Some(sp) = crate::render::trace(frame, o, d) else {
                 continue;
             };
-            let sp = SurfacePoint::new(frame, hit, o, d);
+            let hit = sp.hit;
             let t0 = Instant::now();
             let albedo = sp.albedo(m) * FRAC_1_PI;
             let l_direct = albedo
@@ -456,16 +450,10 @@ pub fn path_trace(
             counts.camera_rays += 1;
             let mut beta = Vec3::ONE;
             for bounce in 0..depth {
-                let Some(hit) = frame.accel.closest(
-                    &frame.static_geometry,
-                    &frame.dynamic_geometry,
-                    o,
-                    d,
-                    f32::INFINITY,
-                ) else {
+                let Some(sp) = crate::render::trace(frame, o, d) else {
                     break;
                 };
-                let sp = SurfacePoint::new(frame, hit, o, d);
+                let hit = sp.hit;
                 let dim = 2 + bounce * 6;
                 let albedo = sp.albedo(m);
                 let l = beta

@@ -85,6 +85,20 @@ impl SurfacePoint {
     }
 }
 
+/// The surface the ray `o + t·d` meets first, if any.
+pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
+    frame
+        .accel
+        .closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            o,
+            d,
+            f32::INFINITY,
+        )
+        .map(|h| SurfacePoint::new(frame, h, o, d))
+}
+
 /// Irradiance at `x` from one punctual light, shadow ray included (`KHR_lights_punctual`).
 fn punctual_irradiance(
     frame: &FrameScene,
@@ -392,16 +406,10 @@ pub fn render_direct(
                 (y as f32 + jy) / height as f32,
             );
             counts.camera_rays += 1;
-            let Some(hit) = frame.accel.closest(
-                &frame.static_geometry,
-                &frame.dynamic_geometry,
-                o,
-                d,
-                f32::INFINITY,
-            ) else {
+            let Some(sp) = trace(frame, o, d) else {
                 continue;
             };
-            let sp = SurfacePoint::new(frame, hit, o, d);
+            let hit = sp.hit;
             let e = direct_irradiance(
                 frame,
                 &sp,
