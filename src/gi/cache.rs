@@ -546,20 +546,7 @@ impl IrradianceCache {
             .records
             .par_iter()
             .zip(resolved)
-            .map(|(r, (strata, rad))| {
-                let mut new = Self::finish_record(
-                    &r.surface_point(),
-                    r.motion,
-                    r.id,
-                    r.footprint,
-                    strata,
-                    &rad,
-                    p,
-                    frame_number,
-                );
-                new.last_used = r.last_used;
-                new
-            })
+            .map(|(r, (strata, rad))| r.with_strata(strata, &rad, p, frame_number))
             .collect();
         timings.irradiance_estimation += t1.elapsed().as_secs_f64();
         self.records = updated;
@@ -686,6 +673,29 @@ pub struct GatherTimings {
 }
 
 impl Record {
+    /// The record re-made from new strata at its own position; id, footprint and last use
+    /// are kept.
+    pub fn with_strata(
+        &self,
+        strata: Vec<Stratum>,
+        radiance: &[Vec3],
+        p: &CacheParams,
+        frame: i32,
+    ) -> Record {
+        let mut new = IrradianceCache::finish_record(
+            &self.surface_point(),
+            self.motion,
+            self.id,
+            self.footprint,
+            strata,
+            radiance,
+            p,
+            frame,
+        );
+        new.last_used = self.last_used;
+        new
+    }
+
     /// The surface point of the record, for re-gathering from its own position and normal.
     pub fn surface_point(&self) -> SurfacePoint {
         SurfacePoint {

@@ -446,17 +446,7 @@ pub fn update(
                 let fl = (s.flags() & !SEEN_DYNAMIC) | if f.get(i) { SEEN_DYNAMIC } else { 0 };
                 s.set_flags(fl);
             }
-            let mut new = IrradianceCache::finish_record(
-                &r.surface_point(),
-                r.motion,
-                r.id,
-                r.footprint,
-                strata,
-                &rad,
-                cp,
-                frame_number,
-            );
-            new.last_used = r.last_used;
+            let mut new = r.with_strata(strata, &rad, cp, frame_number);
             new.reshot = list.len() as f32 / r.strata.len().max(1) as f32;
             new.dominant_anchor = dominant(&new.strata, &rad);
             new
