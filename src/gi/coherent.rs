@@ -322,12 +322,11 @@ pub fn update(
     timings: &mut GatherTimings,
 ) -> AnchorStats {
     let mut st = AnchorStats::default();
-    let (centre, radius) = static_sphere(frame);
+    let radius = static_radius(frame);
     let set = anchors.get_or_insert_with(|| {
         let (lo, hi) = static_box(frame);
         AnchorSet::new(Quantizer::new(lo, hi))
     });
-    let _ = centre;
     // Re-estimate L_i at every anchor from this frame's photons, then relink (§3.3.2).
     let t = Instant::now();
     let q = set.quantizer;
@@ -563,10 +562,8 @@ fn static_box(frame: &FrameScene) -> (Vec3, Vec3) {
     }
 }
 
-fn static_sphere(frame: &FrameScene) -> (Vec3, f32) {
+/// Radius of the sphere around the static geometry's box: the unit of relative distances.
+fn static_radius(frame: &FrameScene) -> f32 {
     let (lo, hi) = static_box(frame);
-    (
-        0.5 * (lo + hi),
-        (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE),
-    )
+    (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE)
 }

@@ -325,14 +325,7 @@ pub fn render_cached(
             let t1 = Instant::now();
             // One interpolation per pixel and surface: the pixel's other samples on the same
             // prim, facing the same way, reuse it (records are valid over several pixels).
-            let reuse = last.filter(|(prim, n, _, _)| {
-                *prim
-                    == (
-                        hit.motion,
-                        frame.geometry(hit.motion).shading[hit.triangle as usize].prim,
-                    )
-                    && n.dot(sp.ns) > 0.999
-            });
+            let reuse = last.filter(|(prim, n, _, _)| *prim == key(&sp) && n.dot(sp.ns) > 0.999);
             let (e, anchor_id, reshot) = match reuse {
                 Some((_, _, e, (id, r))) => (e, id, r),
                 None => {
@@ -396,8 +389,6 @@ pub fn render_cached(
         acc.finish(spp)
     });
     let wall = t.elapsed().as_secs_f64();
-    let mut img = img;
-    img.keep_cache_aovs();
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
     used.sort_unstable();
     used.dedup();

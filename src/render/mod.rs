@@ -227,11 +227,6 @@ impl FrameImage {
         self.anchor_id = None;
         self.reshoot = None;
     }
-
-    /// Keeps the cache AOVs (they are filled by [`render_rows`]).
-    pub fn keep_cache_aovs(&mut self) {
-        debug_assert!(self.anchor_id.is_some());
-    }
 }
 
 #[derive(Debug, Clone, Copy, Default)]

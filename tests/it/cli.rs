@@ -255,36 +255,14 @@ fn required_unsupported_extension_is_bad_input() {
 
 #[test]
 fn same_bytes_with_one_and_two_threads() {
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
-    let job = example_job();
-    for (dir, threads) in [(&a, "1"), (&b, "2")] {
-        let o = run(&[
-            "render",
-            job.to_str().unwrap(),
-            "--frames",
-            "3-5",
-            "--threads",
-            threads,
-            "--out",
-            dir.path().to_str().unwrap(),
-            "--quiet",
-            "--preview",
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-    }
-    for f in 3..=5 {
-        for ext in ["exr", "png"] {
-            let name = format!("room.{f:04}.{ext}");
-            let (x, y) = (
-                std::fs::read(a.path().join(&name)).unwrap(),
-                std::fs::read(b.path().join(&name)).unwrap(),
-            );
-            assert!(x == y, "{name} differs between 1 and 2 threads");
-        }
-    }
-    // No temporary files are left behind.
-    assert!(exr_files(a.path()).iter().all(|f| !f.contains(".tmp")));
+    let names: Vec<String> = (3..=5)
+        .flat_map(|f| ["exr", "png"].map(|ext| format!("room.{f:04}.{ext}")))
+        .collect();
+    assert_same_bytes_with_1_and_2_threads(
+        &example_job(),
+        &["--frames", "3-5", "--preview"],
+        &names,
+    );
 }
 
 #[test]

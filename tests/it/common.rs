@@ -188,6 +188,42 @@ impl RawGltf {
     }
 }
 
+/// Renders `job` with `args` on 1 and 2 threads and asserts that every file in `names` (paths
+/// under the output directory) has the same bytes both times.
+pub fn assert_same_bytes_with_1_and_2_threads(job: &Path, args: &[&str], names: &[String]) {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    for (dir, threads) in [(&a, "1"), (&b, "2")] {
+        let mut all = vec![
+            "render",
+            job.to_str().unwrap(),
+            "--threads",
+            threads,
+            "--out",
+            dir.path().to_str().unwrap(),
+            "--quiet",
+        ];
+        all.extend_from_slice(args);
+        let o = run(&all);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    for name in names {
+        let (x, y) = (
+            std::fs::read(a.path().join(name)).unwrap(),
+            std::fs::read(b.path().join(name)).unwrap(),
+        );
+        assert!(x == y, "{name} differs between 1 and 2 threads");
+    }
+    // No temporary files are left behind.
+    assert!(
+        std::fs::read_dir(a.path()).unwrap().all(|e| !e
+            .unwrap()
+            .file_name()
+            .to_string_lossy()
+            .contains(".tmp"))
+    );
+}
+
 /// RMS of `a - b` over RGB relative to the RMS of `b`.
 pub fn relative_rms(a: &FrameImage, b: &FrameImage) -> f64 {
     let (mut d, mut n) = (0.0f64, 0.0f64);

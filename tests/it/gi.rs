@@ -249,9 +249,8 @@ fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
 
 #[test]
 fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
-    let job = a.path().join("job.json");
+    let dir = tempfile::tempdir().unwrap();
+    let job = dir.path().join("job.json");
     std::fs::write(
         &job,
         format!(
@@ -262,30 +261,12 @@ fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
     )
     .unwrap();
     for method in ["brute-force", "precomputed"] {
-        for (dir, threads) in [(&a, "1"), (&b, "2")] {
-            let o = run(&[
-                "render",
-                job.to_str().unwrap(),
-                "--frames",
-                "4-6",
-                "--method",
-                method,
-                "--threads",
-                threads,
-                "--out",
-                dir.path().join(method).to_str().unwrap(),
-                "--quiet",
-            ]);
-            assert!(o.status.success(), "{}", stderr(&o));
-        }
-        for f in 4..=6 {
-            let name = format!("{method}/job.{f:04}.exr");
-            assert!(
-                std::fs::read(a.path().join(&name)).unwrap()
-                    == std::fs::read(b.path().join(&name)).unwrap(),
-                "{name} differs"
-            );
-        }
+        let names: Vec<String> = (4..=6).map(|f| format!("job.{f:04}.exr")).collect();
+        assert_same_bytes_with_1_and_2_threads(
+            &job,
+            &["--frames", "4-6", "--method", method],
+            &names,
+        );
     }
 }
 
