@@ -18,7 +18,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::gi::{Preset, Session};
+use crate::gi::Preset;
 use crate::job::{Job, Method};
 use crate::output;
 use crate::pipeline::{self, FrameStats};
@@ -160,7 +160,7 @@ struct Run {
     stats: Vec<FrameStats>,
 }
 
-fn run(job: &Job, scene: &Scene, v: &Variant) -> Run {
+fn run(job: &Job, scene: &Scene, v: &Variant) -> Result<Run> {
     let mut job = job.clone();
     job.method.name = v.method;
     job.method.preset = v.preset;
@@ -168,18 +168,18 @@ fn run(job: &Job, scene: &Scene, v: &Variant) -> Run {
         s.apply(&mut job.method);
     }
     let statics = scene.statics();
-    let mut session = Session::default();
+    let mut session = pipeline::new_session(&job)?;
     let mut images = Vec::new();
     let mut stats = Vec::new();
     for f in job.frames.start..=job.frames.end {
         let t = Instant::now();
         let mut s = pipeline::new_stats(&job, f);
-        let img = pipeline::render_frame(&job, scene, &statics, &mut session, f, &mut s);
+        let img = pipeline::render_frame(&job, scene, &statics, &mut session, f, &mut s)?;
         s.timings_s.total = t.elapsed().as_secs_f64();
         images.push(img);
         stats.push(s);
     }
-    Run { images, stats }
+    Ok(Run { images, stats })
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -253,14 +253,19 @@ pub fn flicker_pct(run: &[FrameImage], reference: &[FrameImage], aov: Aov) -> (O
 }
 
 /// Renders the reference and every variant over the job's frames and scores them.
-pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: &Variant) -> Report {
-    let reference_run = run(job, scene, reference);
+pub fn compare(
+    job: &Job,
+    scene: &Scene,
+    variants: &[Variant],
+    reference: &Variant,
+) -> Result<Report> {
+    let reference_run = run(job, scene, reference)?;
     let (ref_flicker, _) = flicker_pct(&reference_run.images, &reference_run.images, Aov::Beauty);
     let (ref_ind_flicker, _) =
         flicker_pct(&reference_run.images, &reference_run.images, Aov::Indirect);
     let mut results = Vec::new();
     for v in variants {
-        let r = run(job, scene, v);
+        let r = run(job, scene, v)?;
         let per_frame: Vec<f64> = r
             .images
             .iter()
@@ -336,7 +341,7 @@ pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: &Varia
             photons_per_frame: r.stats.iter().map(|s| s.counts.photons as f64).sum::<f64>() / n,
         });
     }
-    Report {
+    Ok(Report {
         job: job.path.display().to_string(),
         frames: [job.frames.start, job.frames.end],
         resolution: [job.width, job.height],
@@ -351,7 +356,7 @@ pub fn compare(job: &Job, scene: &Scene, variants: &[Variant], reference: &Varia
         reference_flicker_pct: ref_flicker,
         reference_indirect_flicker_pct: ref_ind_flicker,
         results,
-    }
+    })
 }
 
 /// The table printed on stdout.

@@ -164,6 +164,8 @@ pub struct RenderSettings {
     pub samples_per_pixel: u32,
     /// Samples of the emissive-triangle lights per camera sample. Default 1.
     pub light_samples: u32,
+    /// Where the anchor method's visibility detection runs (`--visibility`). Default auto.
+    pub visibility: VisibilityChoice,
 }
 
 impl Default for RenderSettings {
@@ -171,8 +173,22 @@ impl Default for RenderSettings {
         RenderSettings {
             samples_per_pixel: 16,
             light_samples: 1,
+            visibility: VisibilityChoice::Auto,
         }
     }
+}
+
+/// Where visibility detection (§3.2) runs.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum VisibilityChoice {
+    /// A hardware GPU adapter when there is one, else the CPU (one log line says why).
+    #[default]
+    Auto,
+    /// Any GPU adapter, software ones included; an error when there is none.
+    Gpu,
+    /// The CPU implementation.
+    Cpu,
 }
 
 /// The global-illumination method (`--method` on the command line).
@@ -343,6 +359,7 @@ pub struct Overrides {
     pub frames: Option<FrameRange>,
     pub out_dir: Option<PathBuf>,
     pub method: Option<Method>,
+    pub visibility: Option<VisibilityChoice>,
 }
 
 /// A validated job: paths resolved, ranges checked.
@@ -418,7 +435,10 @@ impl Job {
                 format!("end {} is before start {}", frames.end, frames.start),
             ));
         }
-        let rs = file.render;
+        let mut rs = file.render;
+        if let Some(v) = overrides.visibility {
+            rs.visibility = v;
+        }
         if rs.samples_per_pixel == 0 || rs.samples_per_pixel > 65536 {
             return Err(Error::input(
                 path,

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anchorage::job::{FrameRange, Job, Overrides};
+use anchorage::job::{FrameRange, Job, Overrides, VisibilityChoice};
 use anchorage::pipeline::{self, Progress, RenderOptions};
 use anchorage::scene::Scene;
 use anchorage::{Error, inspect};
@@ -36,6 +36,9 @@ enum Command {
         /// path-trace, direct.
         #[arg(long)]
         method: Option<String>,
+        /// Where visibility detection runs, overriding the job's `render.visibility`.
+        #[arg(long, value_enum)]
+        visibility: Option<VisibilityChoice>,
         /// Worker threads (default: all cores). The output does not depend on it.
         #[arg(long)]
         threads: Option<usize>,
@@ -74,6 +77,9 @@ enum Command {
         /// Where compare.json and compare.png go (default: the job's output directory).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Where visibility detection runs, overriding the job's `render.visibility`.
+        #[arg(long, value_enum)]
+        visibility: Option<VisibilityChoice>,
         /// Worker threads (default: all cores).
         #[arg(long)]
         threads: Option<usize>,
@@ -149,6 +155,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             frames,
             out,
             method,
+            visibility,
             threads,
             preview,
             quiet,
@@ -157,6 +164,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 frames: frames.as_deref().map(parse_frames).transpose()?,
                 out_dir: out,
                 method: method.as_deref().map(parse_method).transpose()?,
+                visibility,
             };
             set_threads(threads)?;
             let job = Job::load(&job, &overrides)?;
@@ -184,6 +192,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             reference_preset,
             frames,
             out,
+            visibility,
             threads,
         } => {
             set_threads(threads)?;
@@ -191,6 +200,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 frames: frames.as_deref().map(parse_frames).transpose()?,
                 out_dir: out,
                 method: None,
+                visibility,
             };
             let job = Job::load(&job, &overrides)?;
             let preset = |s: &str| {
@@ -250,7 +260,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             };
             let scene = Scene::load(&job)?;
             anchorage::output::check_output_dir(&job.out_dir)?;
-            let report = anchorage::compare::compare(&job, &scene, &variants, &reference);
+            let report = anchorage::compare::compare(&job, &scene, &variants, &reference)?;
             print!("{}", anchorage::compare::table(&report));
             anchorage::compare::write(&job.out_dir, &report)?;
             println!(

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::gi::{self, Session};
 use crate::job::{Job, Method};
 use crate::output;
@@ -132,7 +132,7 @@ pub fn render_frame(
     session: &mut Session,
     frame: i32,
     stats: &mut FrameStats,
-) -> FrameImage {
+) -> Result<FrameImage> {
     let t = job.time_of(frame);
     let start = Instant::now();
     let dynamic = scene.geometry(t, crate::scene::Motion::Dynamic);
@@ -177,7 +177,8 @@ pub fn render_frame(
                 job.height,
                 job.seed,
                 frame,
-            );
+            )
+            .map_err(|e| Error::Render(format!("frame {frame}: {e}")))?;
             let t = &mut stats.timings_s;
             t.photon_tracing = gs.photon_tracing;
             t.irradiance_estimation = gs.irradiance_estimation;
@@ -242,7 +243,17 @@ pub fn render_frame(
     mem.bvh_static_bytes = statics.bvh.bytes() as u64;
     mem.bvh_dynamic_bytes = fs.accel.dynamic_bytes() as u64;
     mem.image_bytes = c.pixels * 8 * 4;
-    img
+    Ok(img)
+}
+
+/// A session for `job`: empty caches and, for the anchor method, the visibility
+/// implementation that `render.visibility` chooses.
+pub fn new_session(job: &Job) -> Result<Session> {
+    let mut session = Session::default();
+    if job.method.name == Method::Anchors {
+        session.visibility = gi::gpu::choose(job.render.visibility).map_err(Error::Render)?;
+    }
+    Ok(session)
 }
 
 /// Stats of `frame` with every number zero.
@@ -283,14 +294,14 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         b
     });
     let mut all = Vec::new();
-    let mut session = Session::default();
+    let mut session = new_session(job)?;
     for (i, &frame) in frames.iter().enumerate() {
         let t0 = Instant::now();
         let mut stats = new_stats(job, frame);
         if i == 0 {
             stats.timings_s.static_bvh = static_time;
         }
-        let img = render_frame(job, scene, &statics, &mut session, frame, &mut stats);
+        let img = render_frame(job, scene, &statics, &mut session, frame, &mut stats)?;
         let t_out = Instant::now();
         let exr = job.frame_path(frame, "exr");
         output::write_exr(&exr, &img)?;

@@ -24,7 +24,7 @@ use super::cache::{
     Stratum,
 };
 use super::photons::PhotonMap;
-use super::visibility::{CpuVisibility, StrataBits, Visibility, dynamic_bounds};
+use super::visibility::{DynamicSet, StrataBits, Visibility};
 use crate::render::{Materials, SurfacePoint};
 use crate::scene::{FrameScene, Motion};
 
@@ -319,8 +319,9 @@ pub fn update(
     height: u32,
     seed: u32,
     frame_number: i32,
+    vis: &dyn Visibility,
     timings: &mut GatherTimings,
-) -> AnchorStats {
+) -> Result<AnchorStats, String> {
     let mut st = AnchorStats::default();
     let radius = static_radius(frame);
     let set = anchors.get_or_insert_with(|| {
@@ -370,14 +371,13 @@ pub fn update(
 
     // Visibility of dynamic prims from every static record (§3.2).
     let t = Instant::now();
-    let bounds = dynamic_bounds(&frame.dynamic_geometry);
-    let vis: &dyn Visibility = &CpuVisibility;
+    let dynamic = DynamicSet::new(&frame.dynamic_geometry);
     let points: Vec<(Vec3, Vec3)> = cache
         .records
         .iter()
         .map(|r| (r.position, r.normal))
         .collect();
-    let flags = vis.flag(&points, cp.strata, &bounds);
+    let flags = vis.flag(&points, cp.strata, &dynamic)?;
     st.visibility_s = t.elapsed().as_secs_f64();
 
     let importons = (ap.density == Density::Importance)
@@ -470,11 +470,13 @@ pub fn update(
         );
     }
     // Their visibility flags, so that strata seeing dynamic prims now are re-shot next frame.
+    let t = Instant::now();
     let new_points: Vec<(Vec3, Vec3)> = cache.records[first_new..]
         .iter()
         .map(|r| (r.position, r.normal))
         .collect();
-    let new_flags = vis.flag(&new_points, cp.strata, &bounds);
+    let new_flags = vis.flag(&new_points, cp.strata, &dynamic)?;
+    st.visibility_s += t.elapsed().as_secs_f64();
     for (r, f) in cache.records[first_new..].iter_mut().zip(new_flags) {
         for (i, s) in r.strata.iter_mut().enumerate() {
             if f.get(i) {
@@ -520,7 +522,7 @@ pub fn update(
     }
     st.anchors = set.live_count() as u64;
     st.anchors_created = set.take_created();
-    st
+    Ok(st)
 }
 
 /// The anchor whose strata carry most of a record's irradiance (luminance).

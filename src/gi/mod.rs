@@ -15,6 +15,7 @@
 pub mod anchors;
 pub mod cache;
 pub mod coherent;
+pub mod gpu;
 pub mod photons;
 pub mod visibility;
 
@@ -153,6 +154,8 @@ pub struct Session {
     pub cache: IrradianceCache,
     /// The anchor method's anchors, kept from frame to frame.
     pub anchors: Option<anchors::AnchorSet>,
+    /// Visibility detection for the anchor method; `None` is the CPU implementation.
+    pub visibility: Option<Box<dyn visibility::Visibility>>,
 }
 
 /// Timings and counts of one frame's global illumination (the paper's Table 1 rows).
@@ -213,7 +216,7 @@ pub fn render_cached(
     height: u32,
     seed: u32,
     frame_number: i32,
-) -> (FrameImage, RenderCounts, GiStats) {
+) -> Result<(FrameImage, RenderCounts, GiStats), String> {
     let mut st = GiStats::default();
     let t = Instant::now();
     let pm = PhotonMap::trace(frame, m, params.photons, seed, params.max_bounces);
@@ -232,6 +235,10 @@ pub fn render_cached(
     let cache = &mut session.cache;
     cache.set_error(params.cache.error);
     if method == CachedMethod::Anchors {
+        let vis = session
+            .visibility
+            .as_deref()
+            .unwrap_or(&visibility::CpuVisibility);
         st.anchors = Some(coherent::update(
             frame,
             m,
@@ -245,8 +252,9 @@ pub fn render_cached(
             height,
             seed,
             frame_number,
+            vis,
             &mut gt,
-        ));
+        )?);
     } else {
         let mut brute =
             |fp: &[f32], hits: Vec<Vec<cache::GatherHit>>| cache::estimate_all(fp, hits, &radiance);
@@ -401,7 +409,7 @@ pub fn render_cached(
     st.cache_interpolation = wall * frac;
     st.direct_lighting = wall * (1.0 - frac);
     let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
-    (img, counts, st)
+    Ok((img, counts, st))
 }
 
 /// Per-row state of the cached shading pass.

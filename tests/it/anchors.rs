@@ -4,7 +4,6 @@
 use super::common::*;
 use super::scenes::base64_encode;
 use anchorage::compare::{Aov, rms_error_pct};
-use anchorage::gi::Session;
 use anchorage::pipeline;
 use anchorage::render::FrameImage;
 use anchorage::scene::Scene;
@@ -16,12 +15,13 @@ fn render_sequence(
 ) -> Vec<(FrameImage, pipeline::FrameStats)> {
     let scene = Scene::load(job).unwrap();
     let statics = scene.statics();
-    let mut session = Session::default();
+    let mut session = pipeline::new_session(job).unwrap();
     frames
         .into_iter()
         .map(|f| {
             let mut stats = pipeline::new_stats(job, f);
-            let img = pipeline::render_frame(job, &scene, &statics, &mut session, f, &mut stats);
+            let img =
+                pipeline::render_frame(job, &scene, &statics, &mut session, f, &mut stats).unwrap();
             (img, stats)
         })
         .collect()

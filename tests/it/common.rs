@@ -51,6 +51,7 @@ pub fn render(job: &Job, frame: i32) -> FrameImage {
         frame,
         &mut stats,
     )
+    .expect("frame renders")
 }
 
 fn blank_stats() -> FrameStats {

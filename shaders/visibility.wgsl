@@ -1,0 +1,163 @@
+// Visibility maps (the paper's §3.2): which strata of each static cache record may see a
+// dynamic triangle. One invocation per (record, triangle) pair rasterises the triangle's
+// cap onto the record's stratum grid and sets one bit per covered stratum. This mirrors
+// `cover` and `sphere_cap` in src/gi/visibility.rs line by line; the module doc there
+// states the rule and why it is conservative.
+
+struct Params {
+    // Records in this dispatch, starting at `record_offset`.
+    records: u32,
+    record_offset: u32,
+    triangles: u32,
+    // Strata: M rows of N columns.
+    m: u32,
+    n: u32,
+    // u32 words of flags per record.
+    words: u32,
+    // Workgroups along x (dispatches are 2D to pass the 65535 limit).
+    groups_x: u32,
+    slack: f32,
+    min_cap_cos: f32,
+    dphi: f32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+// Per record: position, tangent, bitangent, normal (w unused).
+@group(0) @binding(1) var<storage, read> records: array<vec4<f32>>;
+// Per triangle: three vertices (w unused).
+@group(0) @binding(2) var<storage, read> triangles: array<vec4<f32>>;
+// Per triangle: its prim.
+@group(0) @binding(3) var<storage, read> tri_prim: array<u32>;
+// Per prim: bounding-sphere centre and radius.
+@group(0) @binding(4) var<storage, read> prims: array<vec4<f32>>;
+// M rows (cos θ, sin θ, cos β, sin β), then M·N cell centre directions (local frame).
+@group(0) @binding(5) var<storage, read> grid: array<vec4<f32>>;
+// One bit per stratum, `words` per record.
+@group(0) @binding(6) var<storage, read_write> flags: array<atomic<u32>>;
+
+struct Cap {
+    axis: vec3<f32>,
+    cos: f32,
+    sin: f32,
+    valid: bool,
+}
+
+// cos(a + b) from the cosines and sines of a, b in [0, π]; -1 past π.
+fn cos_sum(ca: f32, sa: f32, cb: f32, sb: f32) -> f32 {
+    if sa * cb + ca * sb < 0.0 {
+        return -1.0;
+    }
+    return ca * cb - sa * sb;
+}
+
+// Whether cell centre `c` of `row` lies within the cap grown by the row's β.
+fn overlaps(cap: Cap, row: vec4<f32>, c: vec3<f32>) -> bool {
+    return dot(c, cap.axis) >= cos_sum(cap.cos, cap.sin, row.z, row.w) - params.slack;
+}
+
+fn mark(r: u32, cell: u32) {
+    atomicOr(&flags[r * params.words + cell / 32u], 1u << (cell % 32u));
+}
+
+@compute @workgroup_size(64)
+fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) li: u32) {
+    let pair = (wg.y * params.groups_x + wg.x) * 64u + li;
+    let local_record = pair / params.triangles;
+    if local_record >= params.records {
+        return;
+    }
+    let r = params.record_offset + local_record;
+    let ti = pair % params.triangles;
+    let x = records[4u * r].xyz;
+    let t = records[4u * r + 1u].xyz;
+    let b = records[4u * r + 2u].xyz;
+    let n = records[4u * r + 3u].xyz;
+    let slack = params.slack;
+
+    // The prim's sphere cap (`sphere_cap`).
+    let sph = prims[tri_prim[ti]];
+    var sphere = Cap(vec3<f32>(0.0), 1.0, 0.0, false);
+    let v = sph.xyz - x;
+    let d = length(v);
+    if d > sph.w * (1.0 + slack) {
+        let s = sph.w / d;
+        let a = v / d;
+        sphere = Cap(vec3<f32>(dot(a, t), dot(a, b), dot(a, n)), sqrt(max(1.0 - s * s, 0.0)), s, true);
+        if sphere.axis.z < -sphere.sin - slack {
+            return;
+        }
+    }
+
+    // The triangle's cap (`cover`).
+    let p0 = triangles[3u * ti].xyz - x;
+    let p1 = triangles[3u * ti + 1u].xyz - x;
+    let p2 = triangles[3u * ti + 2u].xyz - x;
+    let l0 = length(p0);
+    let l1 = length(p1);
+    let l2 = length(p2);
+    if dot(p0, n) < -slack * l0 && dot(p1, n) < -slack * l1 && dot(p2, n) < -slack * l2 {
+        return;
+    }
+    var tri = Cap(vec3<f32>(0.0), 1.0, 0.0, false);
+    if l0 > 0.0 && l1 > 0.0 && l2 > 0.0 {
+        let u0 = p0 / l0;
+        let u1 = p1 / l1;
+        let u2 = p2 / l2;
+        let w = u0 + u1 + u2;
+        let wl = length(w);
+        if wl > 0.0 {
+            let a = w / wl;
+            let c = min(min(dot(a, u0), dot(a, u1)), dot(a, u2));
+            if c > params.min_cap_cos + slack {
+                tri = Cap(vec3<f32>(dot(a, t), dot(a, b), dot(a, n)), c, sqrt(max(1.0 - c * c, 0.0)), true);
+            }
+        }
+    }
+    var cull = tri;
+    if !tri.valid {
+        cull = sphere;
+    }
+    if !cull.valid {
+        for (var c = 0u; c < params.m * params.n; c++) {
+            mark(r, c);
+        }
+        return;
+    }
+
+    // Rasterise: rows whose best cell can pass, then the columns around the cap's azimuth.
+    let ni = i32(params.n);
+    let rho = sqrt(cull.axis.x * cull.axis.x + cull.axis.y * cull.axis.y);
+    let phi_w = atan2(cull.axis.y, cull.axis.x);
+    for (var j = 0u; j < params.m; j++) {
+        let row = grid[j];
+        let k_min = cos_sum(cull.cos, cull.sin, row.z, row.w) - slack;
+        let along = row.x * cull.axis.z;
+        let across = row.y * rho;
+        if along + across < k_min - 1e-4 {
+            continue;
+        }
+        var k0 = 0;
+        var k1 = ni - 1;
+        if across > 1e-6 {
+            let q = (k_min - along) / across;
+            if q > -1.0 {
+                let delta = acos(min(q, 1.0));
+                k0 = i32(floor((phi_w - delta) / params.dphi - 0.5)) - 1;
+                k1 = i32(ceil((phi_w + delta) / params.dphi - 0.5)) + 1;
+                if k1 - k0 + 1 >= ni {
+                    k0 = 0;
+                    k1 = ni - 1;
+                }
+            }
+        }
+        for (var k = k0; k <= k1; k++) {
+            let cell = j * params.n + u32(((k % ni) + ni) % ni);
+            let c = grid[params.m + cell].xyz;
+            if (!tri.valid || overlaps(tri, row, c)) && (!sphere.valid || overlaps(sphere, row, c)) {
+                mark(r, cell);
+            }
+        }
+    }
+}
