@@ -32,7 +32,8 @@ struct Params {
 @group(0) @binding(3) var<storage, read> tri_prim: array<u32>;
 // Per prim: bounding-sphere centre and radius.
 @group(0) @binding(4) var<storage, read> prims: array<vec4<f32>>;
-// M rows (cos θ, sin θ, cos β, sin β), then M·N cell centre directions (local frame).
+// M rows (cos θ, sin θ, cos β, sin β), 2M half-rows (the same for a cell's quarters),
+// then 4·M·N quarter centre directions (local frame): `Hemisphere`.
 @group(0) @binding(5) var<storage, read> grid: array<vec4<f32>>;
 // One bit per stratum, `words` per record.
 @group(0) @binding(6) var<storage, read_write> flags: array<atomic<u32>>;
@@ -55,6 +56,67 @@ fn cos_sum(ca: f32, sa: f32, cb: f32, sb: f32) -> f32 {
 // Whether cell centre `c` of `row` lies within the cap grown by the row's β.
 fn overlaps(cap: Cap, row: vec4<f32>, c: vec3<f32>) -> bool {
     return dot(c, cap.axis) >= cos_sum(cap.cos, cap.sin, row.z, row.w) - params.slack;
+}
+
+// A triangle projected onto the unit sphere (`SphericalTriangle`).
+struct Spherical {
+    u: array<vec3<f32>, 3>,
+    normal: array<vec3<f32>, 3>,
+    tangent_a: array<vec3<f32>, 3>,
+    tangent_b: array<vec3<f32>, 3>,
+    inside_sign: f32,
+    valid: bool,
+}
+
+fn spherical(u: array<vec3<f32>, 3>) -> Spherical {
+    var s: Spherical;
+    s.u = u;
+    s.valid = true;
+    for (var e = 0u; e < 3u; e++) {
+        let a = u[e];
+        let b = u[(e + 1u) % 3u];
+        let cross_ab = cross(a, b);
+        let l = length(cross_ab);
+        if l < 10.0 * params.slack {
+            s.valid = false;
+            return s;
+        }
+        s.normal[e] = cross_ab / l;
+        s.tangent_a[e] = cross(s.normal[e], a);
+        s.tangent_b[e] = cross(b, s.normal[e]);
+    }
+    let det = dot(u[0], cross(u[1], u[2]));
+    s.inside_sign = select(select(0.0, -1.0, det < 0.0), 1.0, det > 0.0);
+    return s;
+}
+
+// Whether the cap of `row`'s β around `c` meets the spherical triangle (`near`).
+fn near(s: Spherical, row: vec4<f32>, c: vec3<f32>) -> bool {
+    let slack = params.slack;
+    for (var i = 0u; i < 3u; i++) {
+        if dot(c, s.u[i]) >= row.z - slack {
+            return true;
+        }
+    }
+    if s.inside_sign != 0.0 {
+        var inside = true;
+        for (var e = 0u; e < 3u; e++) {
+            inside = inside && s.inside_sign * dot(c, s.normal[e]) >= -slack;
+        }
+        if inside {
+            return true;
+        }
+    }
+    if row.z <= 0.0 {
+        return true;
+    }
+    for (var e = 0u; e < 3u; e++) {
+        if dot(c, s.tangent_a[e]) >= -slack && dot(c, s.tangent_b[e]) >= -slack
+            && abs(dot(c, s.normal[e])) <= row.w + slack {
+            return true;
+        }
+    }
+    return false;
 }
 
 fn mark(r: u32, cell: u32) {
@@ -101,6 +163,8 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         return;
     }
     var tri = Cap(vec3<f32>(0.0), 1.0, 0.0, false);
+    var exact: Spherical;
+    exact.valid = false;
     if l0 > 0.0 && l1 > 0.0 && l2 > 0.0 {
         let u0 = p0 / l0;
         let u1 = p1 / l1;
@@ -112,6 +176,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             let c = min(min(dot(a, u0), dot(a, u1)), dot(a, u2));
             if c > params.min_cap_cos + slack {
                 tri = Cap(vec3<f32>(dot(a, t), dot(a, b), dot(a, n)), c, sqrt(max(1.0 - c * c, 0.0)), true);
+                exact = spherical(array<vec3<f32>, 3>(
+                    vec3<f32>(dot(u0, t), dot(u0, b), dot(u0, n)),
+                    vec3<f32>(dot(u1, t), dot(u1, b), dot(u1, n)),
+                    vec3<f32>(dot(u2, t), dot(u2, b), dot(u2, n)),
+                ));
             }
         }
     }
@@ -154,9 +223,14 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         }
         for (var k = k0; k <= k1; k++) {
             let cell = j * params.n + u32(((k % ni) + ni) % ni);
-            let c = grid[params.m + cell].xyz;
-            if (!tri.valid || overlaps(tri, row, c)) && (!sphere.valid || overlaps(sphere, row, c)) {
-                mark(r, cell);
+            for (var i = 0u; i < 4u; i++) {
+                let c = grid[3u * params.m + 4u * cell + i].xyz;
+                let half = grid[params.m + 2u * j + i / 2u];
+                if (!tri.valid || overlaps(tri, half, c)) && (!exact.valid || near(exact, half, c))
+                    && (!sphere.valid || overlaps(sphere, half, c)) {
+                    mark(r, cell);
+                    break;
+                }
             }
         }
     }

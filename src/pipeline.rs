@@ -99,6 +99,9 @@ pub struct FrameStats {
     /// Animation time of the frame in seconds.
     pub time: f32,
     pub method: &'static str,
+    /// `anchors` only: the visibility implementation that ran.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub visibility: Option<String>,
     pub resolution: [u32; 2],
     pub samples_per_pixel: u32,
     pub timings_s: Timings,
@@ -192,6 +195,10 @@ pub fn render_frame(
             c.uncached_samples = gs.uncached_samples;
             c.rays_reshot = gs.rays_shot;
             if let Some(a) = &gs.anchors {
+                stats.visibility = Some(match &session.visibility {
+                    Some(v) => v.name(),
+                    None => gi::visibility::Visibility::name(&gi::visibility::CpuVisibility),
+                });
                 c.anchors = a.anchors;
                 c.anchors_created = a.anchors_created;
                 c.rays_reshot = a.rays_reshot;
@@ -262,6 +269,7 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
         frame,
         time: job.time_of(frame),
         method: job.method.name.name(),
+        visibility: None,
         resolution: [job.width, job.height],
         samples_per_pixel: match job.method.name {
             Method::PathTrace => job.method.params().path_samples,

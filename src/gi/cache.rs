@@ -26,9 +26,6 @@ use crate::scene::{FrameCamera, FrameScene, Motion, Projection};
 
 /// Stratum flag: the gather ray hit a dynamic prim (its radiance was estimated directly).
 pub const HIT_DYNAMIC: u8 = 1;
-/// Stratum flag: visibility detection found a dynamic prim over the stratum when it was last
-/// updated, so it is re-shot once more to catch the disocclusion (§3.2).
-pub const SEEN_DYNAMIC: u8 = 2;
 
 /// One gather direction of a record (the paper's `RadianceSample`, §4.1) in 6 bytes: a
 /// 30-bit anchor link with two flag bits, and the hit distance as an f16 in units of the

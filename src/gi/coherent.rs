@@ -4,10 +4,14 @@
 //! Every frame: shoot the photons (the same QMC paths as before where nothing moved),
 //! re-estimate L_i at every anchor and relink each anchor's nearest photon (§3.3.2); drop
 //! dynamic and stale records (§4.3); flag the strata of every static record that may see a
-//! dynamic prim ([`Visibility`], §3.2) and re-trace exactly those flagged now or in the
-//! previous frame — a re-traced ray that hits dynamic geometry gets its radiance the brute
-//! force way, one that hits static geometry attaches to an anchor (Pseudocode 1); every other
-//! stratum reads its anchor. New records (camera motion, dynamic prims) gather all their
+//! dynamic prim ([`Visibility`], §3.2) and re-trace exactly those flagged now and those whose
+//! ray hit a dynamic prim in the previous frame ("if dynamic object was hit in current or
+//! previous frame", Pseudocode 2: the second set catches disocclusion) — a re-traced ray that
+//! hits dynamic geometry gets its radiance the brute force way, one that hits static geometry
+//! attaches to an anchor (Pseudocode 1) unless it lands where it did before; every other
+//! stratum reads its anchor. A stratum flagged in the previous frame whose ray hit static
+//! geometry and is not flagged now needs nothing: its direction is fixed and nothing dynamic
+//! can be in its way. New records (camera motion, dynamic prims) gather all their
 //! strata and attach them the same way.
 //!
 //! Attachment is sequential in record and stratum order, so anchors are created in the
@@ -20,11 +24,10 @@ use rayon::prelude::*;
 
 use super::anchors::{Anchor, AnchorSet, Density, NONE, Quantizer};
 use super::cache::{
-    CacheParams, GatherHit, GatherTimings, HIT_DYNAMIC, IrradianceCache, NO_LINK, SEEN_DYNAMIC,
-    Stratum,
+    CacheParams, GatherHit, GatherTimings, HIT_DYNAMIC, IrradianceCache, NO_LINK, Stratum,
 };
 use super::photons::PhotonMap;
-use super::visibility::{DynamicSet, StrataBits, Visibility};
+use super::visibility::{DynamicSet, Visibility};
 use crate::render::{Materials, SurfacePoint};
 use crate::scene::{FrameScene, Motion};
 
@@ -240,13 +243,16 @@ impl Importons {
 }
 
 /// Resolves gather hits for the anchor method: dynamic hits by the photon map (parallel),
-/// static hits by attachment (sequential, in order). `seen` are the visibility flags to store.
+/// static hits by attachment (sequential, in order). `previous` are the strata that re-shot
+/// hits replace: a re-shot ray that lands on static geometry at the distance it had before
+/// (its stratum was flagged, but nothing dynamic was in the way) keeps its anchor, as an
+/// unflagged stratum would; re-attaching it could pick another anchor and add flicker.
 fn resolve(
     att: &Attacher,
     set: &mut AnchorSet,
     footprints: &[f32],
     hits: Vec<Vec<GatherHit>>,
-    seen: Option<&[StrataBits]>,
+    previous: Option<&[Vec<Stratum>]>,
 ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
     let dynamic: Vec<Vec<Vec3>> = hits
         .par_iter()
@@ -268,16 +274,23 @@ fn resolve(
         let mut strata = Vec::with_capacity(h.len());
         let mut rad = Vec::with_capacity(h.len());
         for (si, g) in h.iter().enumerate() {
-            let seen_flag = if seen.is_some_and(|s| s[ri].get(si)) {
-                SEEN_DYNAMIC
-            } else {
-                0
-            };
+            let unchanged = previous.map(|p| p[ri][si]).filter(|old| {
+                old.link().is_some()
+                    && old.flags() & HIT_DYNAMIC == 0
+                    && Stratum::new(0, 0, g.distance, footprints[ri]).distance(footprints[ri])
+                        == old.distance(footprints[ri])
+            });
             match &g.sp {
+                Some(sp) if sp.hit.motion == Motion::Static && unchanged.is_some() => {
+                    let old = unchanged.expect("checked");
+                    let id = old.link().expect("checked");
+                    strata.push(Stratum::new(id, 0, g.distance, footprints[ri]));
+                    rad.push(set.anchors[id as usize].radiance());
+                }
                 Some(sp) if sp.hit.motion == Motion::Dynamic => {
                     strata.push(Stratum::new(
                         NO_LINK,
-                        HIT_DYNAMIC | seen_flag,
+                        HIT_DYNAMIC,
                         g.distance,
                         footprints[ri],
                     ));
@@ -285,16 +298,11 @@ fn resolve(
                 }
                 Some(sp) => {
                     let id = att.attach(set, sp);
-                    strata.push(Stratum::new(id, seen_flag, g.distance, footprints[ri]));
+                    strata.push(Stratum::new(id, 0, g.distance, footprints[ri]));
                     rad.push(set.anchors[id as usize].radiance());
                 }
                 None => {
-                    strata.push(Stratum::new(
-                        NO_LINK,
-                        seen_flag,
-                        f32::INFINITY,
-                        footprints[ri],
-                    ));
+                    strata.push(Stratum::new(NO_LINK, 0, f32::INFINITY, footprints[ri]));
                     rad.push(Vec3::ZERO);
                 }
             }
@@ -392,7 +400,7 @@ pub fn update(
         importance: importons.as_ref(),
     };
 
-    // Re-shoot the strata flagged now or in the previous frame (Pseudocode 2).
+    // Re-shoot the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode 2).
     let t = Instant::now();
     let todo: Vec<Vec<u32>> = cache
         .records
@@ -400,7 +408,7 @@ pub fn update(
         .zip(&flags)
         .map(|(r, f)| {
             (0..r.strata.len() as u32)
-                .filter(|&s| f.get(s as usize) || r.strata[s as usize].flags() & SEEN_DYNAMIC != 0)
+                .filter(|&s| f.get(s as usize) || r.strata[s as usize].flags() & HIT_DYNAMIC != 0)
                 .collect()
         })
         .collect();
@@ -420,15 +428,20 @@ pub fn update(
     timings.rays += st.rays_reshot;
     let t = Instant::now();
     let footprints: Vec<f32> = cache.records.iter().map(|r| r.footprint).collect();
-    let resolved = resolve(&att, set, &footprints, hits, None);
+    let previous: Vec<Vec<Stratum>> = cache
+        .records
+        .iter()
+        .zip(&todo)
+        .map(|(r, list)| list.iter().map(|&s| r.strata[s as usize]).collect())
+        .collect();
+    let resolved = resolve(&att, set, &footprints, hits, Some(&previous));
     let anchors_ref = &*set;
     let updated: Vec<_> = cache
         .records
         .par_iter()
         .zip(resolved)
         .zip(&todo)
-        .zip(&flags)
-        .map(|(((r, (new_strata, new_rad)), list), f)| {
+        .map(|((r, (new_strata, new_rad)), list)| {
             let mut strata = r.strata.clone();
             let mut rad: Vec<Vec3> = strata
                 .iter()
@@ -440,10 +453,6 @@ pub fn update(
             for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
                 strata[s as usize] = ns;
                 rad[s as usize] = nr;
-            }
-            for (i, s) in strata.iter_mut().enumerate() {
-                let fl = (s.flags() & !SEEN_DYNAMIC) | if f.get(i) { SEEN_DYNAMIC } else { 0 };
-                s.set_flags(fl);
             }
             let mut new = r.with_strata(strata, &rad, cp, frame_number);
             new.reshot = list.len() as f32 / r.strata.len().max(1) as f32;
@@ -469,20 +478,7 @@ pub fn update(
             timings,
         );
     }
-    // Their visibility flags, so that strata seeing dynamic prims now are re-shot next frame.
-    let t = Instant::now();
-    let new_points: Vec<(Vec3, Vec3)> = cache.records[first_new..]
-        .iter()
-        .map(|r| (r.position, r.normal))
-        .collect();
-    let new_flags = vis.flag(&new_points, cp.strata, &dynamic)?;
-    st.visibility_s += t.elapsed().as_secs_f64();
-    for (r, f) in cache.records[first_new..].iter_mut().zip(new_flags) {
-        for (i, s) in r.strata.iter_mut().enumerate() {
-            if f.get(i) {
-                s.set_flags(s.flags() | SEEN_DYNAMIC);
-            }
-        }
+    for r in &mut cache.records[first_new..] {
         let rad: Vec<Vec3> = r
             .strata
             .iter()

@@ -206,8 +206,9 @@ impl Visibility for GpuVisibility {
         let grid: Vec<[f32; 4]> = h
             .rows
             .iter()
+            .chain(&h.half_rows)
             .map(|r| [r.cos_theta, r.sin_theta, r.cos_beta, r.sin_beta])
-            .chain(h.cells.iter().map(|c| c.extend(0.0).to_array()))
+            .chain(h.quarters.iter().map(|c| c.extend(0.0).to_array()))
             .collect();
         let out_bytes = (records.len() * words * 4) as u64;
         if rec_data.len() as u64 * 16 > self.max_binding || out_bytes > self.max_binding {
@@ -405,6 +406,7 @@ mod tests {
                 gpu_flags.iter().map(StrataBits::count).sum(),
             );
             assert!(nc > 0);
+            eprintln!("strata {strata:?}: GPU {ng}, CPU {nc}");
             assert!(ng * 100 <= nc * 101, "GPU {ng} vs CPU {nc} strata");
             if strata[0] * strata[1] <= 432 {
                 assert!(assert_conservative(&g, &records, strata, &gpu_flags) > 100);

@@ -9,7 +9,7 @@ use anchorage::render::FrameImage;
 use anchorage::scene::Scene;
 
 /// Renders frames `frames` of `job` in order with one session, as `render` does.
-fn render_sequence(
+pub(super) fn render_sequence(
     job: &anchorage::job::Job,
     frames: impl IntoIterator<Item = i32>,
 ) -> Vec<(FrameImage, pipeline::FrameStats)> {
@@ -27,7 +27,7 @@ fn render_sequence(
         .collect()
 }
 
-fn example(method: &str, extra: &str) -> anchorage::job::Job {
+pub(super) fn example(method: &str, extra: &str) -> anchorage::job::Job {
     job_from_json(
         &example_job(),
         &format!(

@@ -59,6 +59,7 @@ fn blank_stats() -> FrameStats {
         frame: 0,
         time: 0.0,
         method: "direct",
+        visibility: None,
         resolution: [0, 0],
         samples_per_pixel: 0,
         timings_s: Default::default(),

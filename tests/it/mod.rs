@@ -2,6 +2,7 @@ mod anchors;
 mod cli;
 pub mod common;
 mod gi;
+mod gpu;
 mod lighting;
 mod python;
 mod scenes;
