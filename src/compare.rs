@@ -19,7 +19,7 @@ use serde::Serialize;
 
 use crate::error::{Error, Result};
 use crate::gi::Preset;
-use crate::job::{Job, Method};
+use crate::job::{Job, Method, VisibilityChoice};
 use crate::output;
 use crate::pipeline::{self, FrameStats};
 use crate::render::FrameImage;
@@ -40,6 +40,10 @@ pub enum Setting {
     K(u32),
     Strata([u32; 2]),
     Error(f32),
+    /// Where visibility detection runs (a render setting, not a method's).
+    Visibility(VisibilityChoice),
+    /// Photons per anchor estimate as a multiple of `k`.
+    AnchorK(f32),
 }
 
 impl Setting {
@@ -58,18 +62,28 @@ impl Setting {
                         Setting::Strata([m.parse().ok()?, n.parse().ok()?])
                     }
                     "error" => Setting::Error(v.parse().ok()?),
+                    "anchor_k" => Setting::AnchorK(v.parse().ok()?),
+                    "visibility" => Setting::Visibility(match v {
+                        "auto" => VisibilityChoice::Auto,
+                        "gpu" => VisibilityChoice::Gpu,
+                        "cpu" => VisibilityChoice::Cpu,
+                        _ => return None,
+                    }),
                     _ => return None,
                 })
             })
             .collect()
     }
 
-    pub fn apply(&self, m: &mut crate::job::MethodSettings) {
+    pub fn apply(&self, job: &mut Job) {
+        let m = &mut job.method;
         match *self {
             Setting::Photons(v) => m.photons = Some(v),
             Setting::K(v) => m.k = Some(v),
             Setting::Strata(v) => m.strata = Some(v),
             Setting::Error(v) => m.error = Some(v),
+            Setting::Visibility(v) => job.render.visibility = v,
+            Setting::AnchorK(v) => m.anchors.get_or_insert_default().k_scale = v,
         }
     }
 
@@ -79,6 +93,8 @@ impl Setting {
             Setting::K(v) => format!("k={v}"),
             Setting::Strata([m, n]) => format!("strata={m}x{n}"),
             Setting::Error(v) => format!("error={v}"),
+            Setting::Visibility(v) => format!("visibility={}", format!("{v:?}").to_lowercase()),
+            Setting::AnchorK(v) => format!("anchor_k={v}"),
         }
     }
 }
@@ -129,6 +145,10 @@ pub struct Score {
     pub table1_s: Table1,
     pub caches_per_frame: f64,
     pub photons_per_frame: f64,
+    /// `anchors` after its first frame: median share of all strata re-traced, in %.
+    pub reshot_pct: Option<f64>,
+    /// `anchors` after its first frame: median visibility seconds per 10 000 records.
+    pub visibility_s_per_10k_caches: Option<f64>,
 }
 
 /// Median seconds per stage.
@@ -139,6 +159,7 @@ pub struct Table1 {
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     pub direct_lighting: f64,
+    pub visibility: f64,
     pub total: f64,
 }
 
@@ -158,6 +179,7 @@ pub struct Report {
 struct Run {
     images: Vec<FrameImage>,
     stats: Vec<FrameStats>,
+    strata_per_record: f64,
 }
 
 fn run(job: &Job, scene: &Scene, v: &Variant) -> Result<Run> {
@@ -165,7 +187,7 @@ fn run(job: &Job, scene: &Scene, v: &Variant) -> Result<Run> {
     job.method.name = v.method;
     job.method.preset = v.preset;
     if let Some(s) = &v.setting {
-        s.apply(&mut job.method);
+        s.apply(&mut job);
     }
     let statics = scene.statics();
     let mut session = pipeline::new_session(&job)?;
@@ -179,7 +201,12 @@ fn run(job: &Job, scene: &Scene, v: &Variant) -> Result<Run> {
         images.push(img);
         stats.push(s);
     }
-    Ok(Run { images, stats })
+    let [m, n] = job.method.params().cache.strata;
+    Ok(Run {
+        images,
+        stats,
+        strata_per_record: (m * n) as f64,
+    })
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -281,6 +308,13 @@ pub fn compare(
         let (flicker, pixels) = flicker_pct(&r.images, &reference_run.images, Aov::Beauty);
         let (ind_flicker, _) = flicker_pct(&r.images, &reference_run.images, Aov::Indirect);
         let n = r.stats.len().max(1) as f64;
+        let med = |f: &dyn Fn(&FrameStats) -> f64| median(r.stats.iter().map(f).collect());
+        let strata_per_record = r.strata_per_record;
+        // Anchors in steady state: every frame after the first.
+        let steady = |f: &dyn Fn(&FrameStats) -> f64| {
+            (v.method == Method::Anchors && r.stats.len() > 1)
+                .then(|| median(r.stats[1..].iter().map(f).collect()))
+        };
         results.push(Score {
             label: v.label(),
             method: v.method.name(),
@@ -308,35 +342,21 @@ pub fn compare(
                 (secs > 0.0).then(|| rays / secs / rayon::current_num_threads() as f64)
             },
             table1_s: Table1 {
-                photon_tracing: median(
-                    r.stats.iter().map(|s| s.timings_s.photon_tracing).collect(),
-                ),
-                irradiance_estimation: median(
-                    r.stats
-                        .iter()
-                        .map(|s| s.timings_s.irradiance_estimation)
-                        .collect(),
-                ),
-                final_gathering: median(
-                    r.stats
-                        .iter()
-                        .map(|s| s.timings_s.final_gathering)
-                        .collect(),
-                ),
-                cache_interpolation: median(
-                    r.stats
-                        .iter()
-                        .map(|s| s.timings_s.cache_interpolation)
-                        .collect(),
-                ),
-                direct_lighting: median(
-                    r.stats
-                        .iter()
-                        .map(|s| s.timings_s.direct_lighting)
-                        .collect(),
-                ),
-                total: median(r.stats.iter().map(|s| s.timings_s.total).collect()),
+                photon_tracing: med(&|s| s.timings_s.photon_tracing),
+                irradiance_estimation: med(&|s| s.timings_s.irradiance_estimation),
+                final_gathering: med(&|s| s.timings_s.final_gathering),
+                cache_interpolation: med(&|s| s.timings_s.cache_interpolation),
+                direct_lighting: med(&|s| s.timings_s.direct_lighting),
+                visibility: med(&|s| s.timings_s.visibility),
+                total: med(&|s| s.timings_s.total),
             },
+            reshot_pct: steady(&|s| {
+                let strata = s.counts.caches as f64 * strata_per_record;
+                100.0 * s.counts.rays_reshot as f64 / strata.max(1.0)
+            }),
+            visibility_s_per_10k_caches: steady(&|s| {
+                s.timings_s.visibility / (s.counts.caches as f64).max(1.0) * 1e4
+            }),
             caches_per_frame: r.stats.iter().map(|s| s.counts.caches as f64).sum::<f64>() / n,
             photons_per_frame: r.stats.iter().map(|s| s.counts.photons as f64).sum::<f64>() / n,
         });
@@ -399,7 +419,7 @@ pub fn table(r: &Report) -> String {
         );
     }
     s += &format!(
-        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14}\n",
+        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8}\n",
         rayon::current_num_threads(),
         "method/preset",
         "photons",
@@ -407,22 +427,29 @@ pub fn table(r: &Report) -> String {
         "gather",
         "interp",
         "direct",
+        "visib.",
         "total",
-        "gather rays/s/core"
+        "gather rays/s/core",
+        "reshot%",
+        "vis/10k"
     );
     for x in &r.results {
         let t = &x.table1_s;
         s += &format!(
-            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14}\n",
+            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8}\n",
             x.label,
             t.photon_tracing,
             t.irradiance_estimation,
             t.final_gathering,
             t.cache_interpolation,
             t.direct_lighting,
+            t.visibility,
             t.total,
             x.gather_rays_per_s_per_core
-                .map_or("n/a".into(), |v| format!("{:.2} M", v / 1e6))
+                .map_or("n/a".into(), |v| format!("{:.2} M", v / 1e6)),
+            x.reshot_pct.map_or("n/a".into(), |v| format!("{v:.2}")),
+            x.visibility_s_per_10k_caches
+                .map_or("n/a".into(), |v| format!("{v:.3}"))
         );
     }
     s

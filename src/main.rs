@@ -61,8 +61,8 @@ enum Command {
         /// Comma-separated presets each method runs at (default: the job's preset).
         #[arg(long)]
         presets: Option<String>,
-        /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..` or `error=..`; each
-        /// value runs as its own variant of every method. Repeatable.
+        /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..`, `error=..` or
+        /// `visibility=cpu,gpu`; each value runs as its own variant of every method. Repeatable.
         #[arg(long)]
         vary: Vec<String>,
         /// The reference method.
@@ -221,7 +221,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                     Error::input(
                         "--vary",
                         v,
-                        "expected photons=, k=, strata=MxN or error= with comma-separated values",
+                        "expected photons=, k=, strata=MxN, error= or visibility= with comma-separated values",
                     )
                 })?;
                 settings.extend(list.into_iter().map(Some));
@@ -241,10 +241,10 @@ fn run(cli: Cli) -> Result<(), Error> {
                         };
                         if let Some(s) = setting {
                             // A swept value is checked like a job-file value.
-                            let mut m = job.method;
-                            m.preset = preset;
-                            s.apply(&mut m);
-                            m.validate(&job.path)?;
+                            let mut j = job.clone();
+                            j.method.preset = preset;
+                            s.apply(&mut j);
+                            j.method.validate(&job.path)?;
                         }
                         variants.push(v);
                     }

@@ -341,19 +341,25 @@ pub fn choose(choice: crate::job::VisibilityChoice) -> Result<Option<Box<dyn Vis
         VisibilityChoice::Auto => match GpuVisibility::new() {
             Ok(g) if is_hardware(g.adapter()) => Ok(Some(Box::new(g))),
             Ok(g) => {
-                eprintln!(
-                    "anchorage: visibility on the CPU: the only adapter, {}, is a software \
-                     one and slower than the CPU implementation (--visibility gpu uses it)",
+                log_once(&format!(
+                    "the only adapter, {}, is a software one and slower than the CPU \
+                     implementation (--visibility gpu uses it)",
                     g.adapter().name
-                );
+                ));
                 Ok(None)
             }
             Err(e) => {
-                eprintln!("anchorage: visibility on the CPU: {e}");
+                log_once(&e);
                 Ok(None)
             }
         },
     }
+}
+
+/// The fallback line, once per process (`compare` opens a session per variant).
+fn log_once(why: &str) {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| eprintln!("anchorage: visibility on the CPU: {why}"));
 }
 
 /// Opens an adapter for a test. Without one the test is skipped with a line saying why,

@@ -217,12 +217,13 @@ fn anchors_give_the_same_bytes_with_one_and_two_threads() {
     assert_same_bytes_with_1_and_2_threads(&job, &["--frames", "4-7"], &names);
 }
 
-/// On a fixed camera, anchors flicker no more than brute force. (Not less: this brute force
-/// keeps its records and their gather directions from frame to frame and traces the same QMC
-/// photon paths, so its estimates at unchanged gather hits are already stable; anchors add
-/// no further coherence there. Measured: 1.32 % and 1.32 %.)
+/// On a fixed camera, anchors flicker less than brute force on the indirect light. This brute
+/// force is coherent already (it keeps its records and their gather directions and traces
+/// the same QMC photon paths every frame); what anchors add is fewer, wider estimates (twice
+/// the photons, `anchors.k_scale`) shared by many strata, and re-traced strata that keep
+/// their anchors when they land where they did. Measured: 1.25 % against 1.32 %.
 #[test]
-fn anchors_flicker_no_more_than_brute_force() {
+fn anchors_flicker_less_than_brute_force() {
     let job = example("anchors", "");
     let frames = 20..26;
     let a: Vec<FrameImage> = render_sequence(&job, frames.clone())
@@ -238,7 +239,7 @@ fn anchors_flicker_no_more_than_brute_force() {
     eprintln!("indirect flicker: anchors {fa:?} %, brute force {fb:?} % over {na} pixels");
     assert!(na > 1000);
     assert!(
-        fa.unwrap() < 1.05 * fb.unwrap(),
+        fa.unwrap() < 0.98 * fb.unwrap(),
         "anchors {fa:?} vs brute force {fb:?}"
     );
 }
