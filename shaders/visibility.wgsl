@@ -58,65 +58,78 @@ fn overlaps(cap: Cap, row: vec4<f32>, c: vec3<f32>) -> bool {
     return dot(c, cap.axis) >= cos_sum(cap.cos, cap.sin, row.z, row.w) - params.slack;
 }
 
-// A triangle projected onto the unit sphere (`SphericalTriangle`).
+// A triangle projected onto the unit sphere (`SphericalTriangle`), unrolled: vertices,
+// edge-plane normals n, and the lune tangents ta = n × a, tb = b × n of edges 01, 12, 20.
 struct Spherical {
-    u: array<vec3<f32>, 3>,
-    normal: array<vec3<f32>, 3>,
-    tangent_a: array<vec3<f32>, 3>,
-    tangent_b: array<vec3<f32>, 3>,
+    u0: vec3<f32>,
+    u1: vec3<f32>,
+    u2: vec3<f32>,
+    n0: vec3<f32>,
+    n1: vec3<f32>,
+    n2: vec3<f32>,
+    ta0: vec3<f32>,
+    ta1: vec3<f32>,
+    ta2: vec3<f32>,
+    tb0: vec3<f32>,
+    tb1: vec3<f32>,
+    tb2: vec3<f32>,
     inside_sign: f32,
     valid: bool,
 }
 
-fn spherical(u: array<vec3<f32>, 3>) -> Spherical {
+fn spherical(u0: vec3<f32>, u1: vec3<f32>, u2: vec3<f32>) -> Spherical {
     var s: Spherical;
-    s.u = u;
-    s.valid = true;
-    for (var e = 0u; e < 3u; e++) {
-        let a = u[e];
-        let b = u[(e + 1u) % 3u];
-        let cross_ab = cross(a, b);
-        let l = length(cross_ab);
-        if l < 10.0 * params.slack {
-            s.valid = false;
-            return s;
-        }
-        s.normal[e] = cross_ab / l;
-        s.tangent_a[e] = cross(s.normal[e], a);
-        s.tangent_b[e] = cross(b, s.normal[e]);
+    s.valid = false;
+    let c0 = cross(u0, u1);
+    let c1 = cross(u1, u2);
+    let c2 = cross(u2, u0);
+    let l0 = length(c0);
+    let l1 = length(c1);
+    let l2 = length(c2);
+    let limit = 10.0 * params.slack;
+    if l0 < limit || l1 < limit || l2 < limit {
+        return s;
     }
-    let det = dot(u[0], cross(u[1], u[2]));
+    s.u0 = u0;
+    s.u1 = u1;
+    s.u2 = u2;
+    s.n0 = c0 / l0;
+    s.n1 = c1 / l1;
+    s.n2 = c2 / l2;
+    s.ta0 = cross(s.n0, u0);
+    s.tb0 = cross(u1, s.n0);
+    s.ta1 = cross(s.n1, u1);
+    s.tb1 = cross(u2, s.n1);
+    s.ta2 = cross(s.n2, u2);
+    s.tb2 = cross(u0, s.n2);
+    let det = dot(u0, cross(u1, u2));
     s.inside_sign = select(select(0.0, -1.0, det < 0.0), 1.0, det > 0.0);
+    s.valid = true;
     return s;
+}
+
+fn edge_near(ta: vec3<f32>, tb: vec3<f32>, n: vec3<f32>, c: vec3<f32>, sin_beta: f32) -> bool {
+    let slack = params.slack;
+    return dot(c, ta) >= -slack && dot(c, tb) >= -slack && abs(dot(c, n)) <= sin_beta + slack;
 }
 
 // Whether the cap of `row`'s β around `c` meets the spherical triangle (`near`).
 fn near(s: Spherical, row: vec4<f32>, c: vec3<f32>) -> bool {
     let slack = params.slack;
-    for (var i = 0u; i < 3u; i++) {
-        if dot(c, s.u[i]) >= row.z - slack {
-            return true;
-        }
+    let cos_beta = row.z - slack;
+    if dot(c, s.u0) >= cos_beta || dot(c, s.u1) >= cos_beta || dot(c, s.u2) >= cos_beta {
+        return true;
     }
-    if s.inside_sign != 0.0 {
-        var inside = true;
-        for (var e = 0u; e < 3u; e++) {
-            inside = inside && s.inside_sign * dot(c, s.normal[e]) >= -slack;
-        }
-        if inside {
-            return true;
-        }
+    let g = s.inside_sign;
+    if g != 0.0 && g * dot(c, s.n0) >= -slack && g * dot(c, s.n1) >= -slack
+        && g * dot(c, s.n2) >= -slack {
+        return true;
     }
     if row.z <= 0.0 {
         return true;
     }
-    for (var e = 0u; e < 3u; e++) {
-        if dot(c, s.tangent_a[e]) >= -slack && dot(c, s.tangent_b[e]) >= -slack
-            && abs(dot(c, s.normal[e])) <= row.w + slack {
-            return true;
-        }
-    }
-    return false;
+    return edge_near(s.ta0, s.tb0, s.n0, c, row.w) || edge_near(s.ta1, s.tb1, s.n1, c, row.w)
+        || edge_near(s.ta2, s.tb2, s.n2, c, row.w);
 }
 
 fn mark(r: u32, cell: u32) {
@@ -176,11 +189,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             let c = min(min(dot(a, u0), dot(a, u1)), dot(a, u2));
             if c > params.min_cap_cos + slack {
                 tri = Cap(vec3<f32>(dot(a, t), dot(a, b), dot(a, n)), c, sqrt(max(1.0 - c * c, 0.0)), true);
-                exact = spherical(array<vec3<f32>, 3>(
+                exact = spherical(
                     vec3<f32>(dot(u0, t), dot(u0, b), dot(u0, n)),
                     vec3<f32>(dot(u1, t), dot(u1, b), dot(u1, n)),
                     vec3<f32>(dot(u2, t), dot(u2, b), dot(u2, n)),
-                ));
+                );
             }
         }
     }

@@ -57,6 +57,8 @@ pub struct Counts {
     /// Final-gather rays traced this frame by records that existed before it (for
     /// `anchors`, the re-shot strata; for brute force, every stratum of every record).
     pub rays_reshot: u64,
+    /// `anchors`: anchors whose irradiance was estimated again this frame.
+    pub anchors_reestimated: u64,
     /// Live anchors, and anchors created this frame (`anchors`).
     pub anchors: u64,
     pub anchors_created: u64,
@@ -201,6 +203,7 @@ pub fn render_frame(
                 });
                 c.anchors = a.anchors;
                 c.anchors_created = a.anchors_created;
+                c.anchors_reestimated = a.anchors_reestimated;
                 c.rays_reshot = a.rays_reshot;
                 stats.timings_s.visibility = a.visibility_s;
                 stats.anchor_reuse = Some(AnchorReuse {

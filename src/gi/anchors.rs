@@ -392,6 +392,12 @@ pub struct AnchorSet {
     pub photon_links: Vec<u32>,
     /// Anchors created since the last call to [`AnchorSet::take_created`].
     created: u64,
+    /// Per anchor, 2 bytes: how far its last estimate reached (the k-th photon), as an f16
+    /// in units of 16 quantisation steps, rounded up; infinite when unknown. An anchor whose
+    /// reach no changed photon enters keeps its estimate ([`super::coherent`]).
+    reach: Vec<u16>,
+    /// The photons of the previous frame, to tell which ones changed.
+    pub previous_photons: super::photons::PhotonPaths,
 }
 
 /// "No anchor" in links.
@@ -406,7 +412,33 @@ impl AnchorSet {
             quantizer,
             photon_links: Vec::new(),
             created: 0,
+            reach: Vec::new(),
+            previous_photons: Default::default(),
         }
+    }
+
+    fn reach_unit(&self) -> f32 {
+        16.0 * self.quantizer.step.max_element()
+    }
+
+    /// Records that anchor `id`'s estimate depends on no photon farther than √`r2`.
+    pub fn set_reach(&mut self, id: u32, r2: f32) {
+        let r = r2.sqrt() / self.reach_unit();
+        let mut h = half::f16::from_f32(r);
+        if h.to_f32() < r {
+            h = half::f16::from_bits(h.to_bits() + 1);
+        }
+        self.reach[id as usize] = if r.is_finite() {
+            h.to_bits()
+        } else {
+            half::f16::INFINITY.to_bits()
+        };
+    }
+
+    /// The squared reach of anchor `id`'s estimate (at least the true one).
+    pub fn reach2(&self, id: u32) -> f32 {
+        let r = half::f16::from_bits(self.reach[id as usize]).to_f32() * self.reach_unit();
+        r * r * (1.0 + 1e-5)
     }
 
     pub fn live_count(&self) -> usize {
@@ -422,10 +454,12 @@ impl AnchorSet {
         let id = match self.free.pop() {
             Some(id) => {
                 self.anchors[id as usize] = a;
+                self.reach[id as usize] = half::f16::INFINITY.to_bits();
                 id
             }
             None => {
                 self.anchors.push(a);
+                self.reach.push(half::f16::INFINITY.to_bits());
                 (self.anchors.len() - 1) as u32
             }
         };

@@ -87,6 +87,9 @@ impl Default for AnchorParams {
 pub struct AnchorStats {
     pub anchors: u64,
     pub anchors_created: u64,
+    /// Anchors whose L_i was estimated again (the others kept theirs: no photon within
+    /// their estimate's reach changed).
+    pub anchors_reestimated: u64,
     pub rays_reshot: u64,
     pub visibility_s: f64,
     /// Anchors by how many strata link them (the paper's Figure 8): 1, 2–10, 11–100,
@@ -168,9 +171,20 @@ impl Attacher<'_> {
         let id = match found {
             Some(id) => id,
             None => {
-                let e = self.pm.irradiance(x, sp.ng, self.params.anchor_k(self.k));
+                // Estimated where the anchor is stored (quantised position and normal),
+                // exactly as later frames re-estimate it: the normal test against photons
+                // can tip on a fraction of a degree.
                 let q = set.quantizer;
-                set.add(Anchor::new(&q, x, sp.ng, albedo, e))
+                let id = set.add(Anchor::new(&q, x, sp.ng, albedo, Vec3::ZERO));
+                let a = set.anchors[id as usize];
+                let (e, r2) = self.pm.irradiance_and_radius(
+                    a.position(&q),
+                    a.normal(),
+                    self.params.anchor_k(self.k),
+                );
+                set.anchors[id as usize].set_irradiance(e);
+                set.set_reach(id, r2);
+                id
             }
         };
         if let Some(ph) = photon
@@ -348,22 +362,49 @@ pub fn update(
         let (lo, hi) = static_box(frame);
         AnchorSet::new(Quantizer::new(lo, hi))
     });
-    // Re-estimate L_i at every anchor from this frame's photons, then relink (§3.3.2).
+    // Re-estimate L_i at every anchor from this frame's photons, then relink (§3.3.2). The
+    // photons follow the same paths wherever nothing moved, so an anchor whose last estimate
+    // reached no photon that changed (gone, new or different) would get the same photons
+    // and the same value: it keeps it, and only the others are estimated again (the lazy
+    // recomputation the paper's §6 points to).
     let t = Instant::now();
     let q = set.quantizer;
-    let fresh: Vec<Option<Vec3>> = set
+    let changed = pm.changed_since(&set.previous_photons);
+    let changed_tree = (!changed.is_empty()).then(|| {
+        let pts: Vec<[f32; 3]> = changed.iter().map(|p| p.to_array()).collect();
+        kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
+    });
+    let set_ref = &*set;
+    let fresh: Vec<Option<(Vec3, f32)>> = set
         .anchors
         .par_iter()
-        .map(|a| {
-            a.is_live()
-                .then(|| pm.irradiance(a.position(&q), a.normal(), ap.anchor_k(k)))
+        .enumerate()
+        .map(|(id, a)| {
+            if !a.is_live() {
+                return None;
+            }
+            let x = a.position(&q);
+            let r2 = set_ref.reach2(id as u32);
+            let untouched = r2.is_finite()
+                && changed_tree.as_ref().is_none_or(|t| {
+                    t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
+                        .distance
+                        > r2
+                });
+            (!untouched).then(|| pm.irradiance_and_radius(x, a.normal(), ap.anchor_k(k)))
         })
         .collect();
-    for (a, e) in set.anchors.iter_mut().zip(fresh) {
-        if let Some(e) = e {
-            a.set_irradiance(e);
+    for (id, e) in fresh.into_iter().enumerate() {
+        if let Some((e, r2)) = e {
+            set.anchors[id].set_irradiance(e);
+            set.set_reach(id as u32, r2);
+            st.anchors_reestimated += 1;
         }
     }
+    set.previous_photons = super::photons::PhotonPaths {
+        photons: pm.photons.clone(),
+        path_start: pm.path_start.clone(),
+    };
     set.photon_links = vec![NONE; pm.photons.len()];
     let nearest: Vec<Option<usize>> = set
         .anchors

@@ -33,9 +33,19 @@ pub struct Photon {
     pub power: Vec3,
 }
 
+/// The photons of a map, path by path, kept to tell the next frame's changes.
+#[derive(Debug, Clone, Default)]
+pub struct PhotonPaths {
+    pub photons: Vec<Photon>,
+    pub path_start: Vec<u32>,
+}
+
 /// Photon map with its kd-tree.
 pub struct PhotonMap {
     pub photons: Vec<Photon>,
+    /// Where each emitted photon's path starts in `photons` (one more entry than paths):
+    /// path `i` stored `photons[path_start[i]..path_start[i + 1]]`.
+    pub path_start: Vec<u32>,
     tree: Option<ImmutableKdTree<f32, u32, 3, 32>>,
     /// Photons emitted (the divisor of every photon's power).
     pub emitted: u32,
@@ -152,6 +162,7 @@ impl PhotonMap {
         let emitted_power = power.iter().copied().sum();
         let mut map = PhotonMap {
             photons: Vec::new(),
+            path_start: Vec::new(),
             tree: None,
             emitted: count,
             emitted_power,
@@ -167,11 +178,15 @@ impl PhotonMap {
         }
         let seed = hash(&[seed, 0x5eed_0001]);
         use rayon::prelude::*;
-        let chunks: Vec<Vec<Photon>> = (0..count.div_ceil(4096))
+        let chunks: Vec<(Vec<Photon>, Vec<u32>)> = (0..count.div_ceil(4096))
             .into_par_iter()
             .map(|c| {
                 let mut out = Vec::new();
+                let mut ends = Vec::new();
                 for i in c * 4096..((c + 1) * 4096).min(count) {
+                    if i > c * 4096 {
+                        ends.push(out.len() as u32);
+                    }
                     let s = PhotonSampler { seed, index: i };
                     let k = cdf
                         .partition_point(|&x| x <= s.get(0))
@@ -183,10 +198,16 @@ impl PhotonMap {
                     let flux = flux / (p_pick * count as f32);
                     trace_path(frame, m, o, dir, flux, &s, max_bounces, &mut out);
                 }
-                out
+                ends.push(out.len() as u32);
+                (out, ends)
             })
             .collect();
-        map.photons = chunks.into_iter().flatten().collect();
+        map.path_start.push(0);
+        for (photons, ends) in chunks {
+            let base = map.photons.len() as u32;
+            map.path_start.extend(ends.iter().map(|e| base + e));
+            map.photons.extend(photons);
+        }
         if !map.photons.is_empty() {
             let pts: Vec<[f32; 3]> = map.photons.iter().map(|p| p.position.to_array()).collect();
             map.tree = Some(ImmutableKdTree::new_from_slice(&pts));
@@ -197,8 +218,14 @@ impl PhotonMap {
     /// Irradiance at `x` (normal `n`) from the `k` nearest photons whose surface normal
     /// agrees with `n` (Jensen's estimate E = ΣΦ / πr², r the distance to the k-th photon).
     pub fn irradiance(&self, x: Vec3, n: Vec3, k: usize) -> Vec3 {
+        self.irradiance_and_radius(x, n, k).0
+    }
+
+    /// [`PhotonMap::irradiance`] and the squared distance to the k-th photon: the estimate
+    /// depends on no photon farther away.
+    pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let Some(tree) = &self.tree else {
-            return Vec3::ZERO;
+            return (Vec3::ZERO, f32::INFINITY);
         };
         let found = tree
             .nearest_n::<SquaredEuclidean>(&x.to_array(), NonZero::new(k.max(1)).expect("k >= 1"));
@@ -214,10 +241,53 @@ impl PhotonMap {
                 sum += p.power;
             }
         }
-        if !(r2 > 0.0) {
-            return Vec3::ZERO;
+        if found.len() < k || !(r2 > 0.0) {
+            // Fewer than k photons in the map: any new photon would change the estimate.
+            return (
+                if r2 > 0.0 {
+                    sum / (PI * r2)
+                } else {
+                    Vec3::ZERO
+                },
+                f32::INFINITY,
+            );
         }
-        sum / (PI * r2)
+        (sum / (PI * r2), r2)
+    }
+
+    /// Positions of the photons that differ from those of `previous`, path by path: where
+    /// a path stored other photons (position, normal or power differ in any bit), both its
+    /// old and its new photons count.
+    pub fn changed_since(&self, previous: &PhotonPaths) -> Vec<Vec3> {
+        use rayon::prelude::*;
+        let paths = self.path_start.len().saturating_sub(1);
+        if paths != previous.path_start.len().saturating_sub(1) {
+            return self
+                .photons
+                .iter()
+                .chain(&previous.photons)
+                .map(|p| p.position)
+                .collect();
+        }
+        let bits =
+            |p: &Photon| [p.position, p.normal, p.power].map(|v| v.to_array().map(f32::to_bits));
+        fn slice<'a>(photons: &'a [Photon], start: &[u32], i: usize) -> &'a [Photon] {
+            &photons[start[i] as usize..start[i + 1] as usize]
+        }
+        (0..paths)
+            .into_par_iter()
+            .flat_map_iter(|i| {
+                let a = slice(&self.photons, &self.path_start, i);
+                let b = slice(&previous.photons, &previous.path_start, i);
+                let same = a.len() == b.len() && a.iter().zip(b).all(|(x, y)| bits(x) == bits(y));
+                let moved: Vec<Vec3> = if same {
+                    Vec::new()
+                } else {
+                    a.iter().chain(b).map(|p| p.position).collect()
+                };
+                moved
+            })
+            .collect()
     }
 
     /// Index of the photon nearest to `x`, if any.

@@ -40,9 +40,9 @@ use super::photons::basis;
 use crate::scene::Geometry;
 
 /// The slack of [`CpuVisibility`] (module doc).
-pub const CPU_SLACK: f32 = 1e-5;
+pub const CPU_SLACK: f32 = 1e-6;
 /// The slack of the GPU implementation: three times the CPU's.
-pub const GPU_SLACK: f32 = 3e-5;
+pub const GPU_SLACK: f32 = 3e-6;
 /// A triangle's cap is used when its half-angle's cosine exceeds this (about 87°): wider
 /// caps are not convex enough to bound the triangle, and its prim's sphere alone decides.
 pub const MIN_CAP_COS: f32 = 0.05;
