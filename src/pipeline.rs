@@ -213,8 +213,8 @@ pub fn render_frame(
                     hundred_one_to_1000: a.reuse_histogram[3],
                     over_1000: a.reuse_histogram[4],
                 });
-                stats.memory.bytes_per_anchor = size_of::<gi::anchors::Anchor>() as u64;
-                stats.memory.anchors_bytes = a.anchors * size_of::<gi::anchors::Anchor>() as u64;
+                stats.memory.bytes_per_anchor = gi::anchors::BYTES_PER_ANCHOR as u64;
+                stats.memory.anchors_bytes = a.anchors * gi::anchors::BYTES_PER_ANCHOR as u64;
             }
             stats.memory.bytes_per_stratum = size_of::<gi::cache::Stratum>() as u64;
             stats.memory.strata_bytes = c.caches

@@ -400,6 +400,9 @@ pub struct AnchorSet {
     pub previous_photons: super::photons::PhotonPaths,
 }
 
+/// Memory per anchor: the [`Anchor`] and its estimate's reach in [`AnchorSet`].
+pub const BYTES_PER_ANCHOR: usize = size_of::<Anchor>() + size_of::<u16>();
+
 /// "No anchor" in links.
 pub const NONE: u32 = (1 << 30) - 1;
 
