@@ -61,8 +61,9 @@ enum Command {
         /// Comma-separated presets each method runs at (default: the job's preset).
         #[arg(long)]
         presets: Option<String>,
-        /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..`, `error=..` or
-        /// `visibility=cpu,gpu`; each value runs as its own variant of every method. Repeatable.
+        /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..`, `error=..`,
+        /// `anchor_k=..` (`anchors.k_scale`) or `visibility=cpu,gpu`; each value runs as its
+        /// own variant of every method. Repeatable.
         #[arg(long)]
         vary: Vec<String>,
         /// The reference method.
@@ -221,7 +222,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                     Error::input(
                         "--vary",
                         v,
-                        "expected photons=, k=, strata=MxN, error= or visibility= with comma-separated values",
+                        "expected photons=, k=, strata=MxN, error=, anchor_k= or visibility= with comma-separated values",
                     )
                 })?;
                 settings.extend(list.into_iter().map(Some));

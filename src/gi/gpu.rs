@@ -80,8 +80,8 @@ impl GpuVisibility {
         adapters.sort_by_key(|a| rank(a.get_info().device_type));
         let Some(adapter) = adapters.into_iter().next() else {
             return Err(format!(
-                "no Vulkan, Metal or DX12 adapter found (backends {backends:?}; on Debian, \
-                 mesa-vulkan-drivers provides a software Vulkan adapter)"
+                "no Vulkan, Metal or DX12 adapter found among {backends:?} (OpenGL is not \
+                 supported; on Debian, mesa-vulkan-drivers provides a software Vulkan adapter)"
             ));
         };
         let info = adapter.get_info();

@@ -282,3 +282,54 @@ fn d_max_absolute_and_importance_density() {
     );
     assert!(fine[0].1.counts.anchors > constant[0].1.counts.anchors);
 }
+
+/// An anchor keeps its estimate while no photon within its reach changed; what it keeps is
+/// what a fresh estimate from the current frame's photons gives (to RGBE's precision).
+#[test]
+fn kept_anchor_estimates_match_fresh_ones() {
+    use anchorage::gi::photons::PhotonMap;
+    use anchorage::render::Materials;
+    use anchorage::scene::{FrameScene, Motion};
+    let job = example("anchors", "");
+    let scene = Scene::load(&job).unwrap();
+    let statics = scene.statics();
+    let mut session = pipeline::new_session(&job).unwrap();
+    let mut kept = 0;
+    let last = 13;
+    for f in 10..=last {
+        let mut stats = pipeline::new_stats(&job, f);
+        pipeline::render_frame(&job, &scene, &statics, &mut session, f, &mut stats).unwrap();
+        if f > 10 {
+            kept += stats.counts.anchors - stats.counts.anchors_reestimated;
+        }
+    }
+    assert!(kept > 1000, "{kept} estimates kept");
+    let t = job.time_of(last);
+    let fs = FrameScene::new(
+        &statics,
+        scene.geometry(t, Motion::Dynamic),
+        scene.lights(t),
+        scene.camera_at(t, job.width as f32 / job.height as f32),
+        &scene.materials,
+    );
+    let m = Materials {
+        materials: &scene.materials,
+        textures: &scene.textures,
+    };
+    let params = job.method.params();
+    let pm = PhotonMap::trace(&fs, m, params.photons, job.seed, params.max_bounces);
+    let set = session.anchors.as_ref().unwrap();
+    let k = params.anchors.anchor_k(params.k as usize);
+    let mut checked = 0;
+    for a in set.anchors.iter().filter(|a| a.is_live()) {
+        let fresh = pm.irradiance(a.position(&set.quantizer), a.normal(), k);
+        let kept = a.irradiance();
+        let scale = fresh.max_element().max(kept.max_element()).max(1e-6);
+        assert!(
+            (fresh - kept).abs().max_element() <= 0.01 * scale,
+            "anchor holds {kept}, a fresh estimate gives {fresh}"
+        );
+        checked += 1;
+    }
+    assert!(checked > 1000);
+}
