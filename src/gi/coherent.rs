@@ -300,19 +300,23 @@ fn resolve(
         let mut strata = Vec::with_capacity(h.len());
         let mut rad = Vec::with_capacity(h.len());
         for (si, g) in h.iter().enumerate() {
-            let unchanged = previous.map(|p| p[ri][si]).filter(|old| {
-                old.link().is_some()
-                    && old.flags() & HIT_DYNAMIC == 0
-                    && Stratum::new(0, 0, g.distance, footprints[ri]).distance(footprints[ri])
-                        == old.distance(footprints[ri])
-            });
+            // The anchor of a re-shot stratum whose ray lands where it did before.
+            let kept = previous
+                .map(|p| p[ri][si])
+                .filter(|old| {
+                    old.flags() & HIT_DYNAMIC == 0
+                        && Stratum::new(0, 0, g.distance, footprints[ri]).distance(footprints[ri])
+                            == old.distance(footprints[ri])
+                })
+                .and_then(|old| old.link());
+            if let (Some(sp), Some(id)) = (&g.sp, kept)
+                && sp.hit.motion == Motion::Static
+            {
+                strata.push(Stratum::new(id, 0, g.distance, footprints[ri]));
+                rad.push(set.anchors[id as usize].radiance());
+                continue;
+            }
             match &g.sp {
-                Some(sp) if sp.hit.motion == Motion::Static && unchanged.is_some() => {
-                    let old = unchanged.expect("checked");
-                    let id = old.link().expect("checked");
-                    strata.push(Stratum::new(id, 0, g.distance, footprints[ri]));
-                    rad.push(set.anchors[id as usize].radiance());
-                }
                 Some(sp) if sp.hit.motion == Motion::Dynamic => {
                     strata.push(Stratum::new(
                         NO_LINK,
