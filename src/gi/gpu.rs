@@ -211,10 +211,16 @@ impl Visibility for GpuVisibility {
             .chain(h.quarters.iter().map(|c| c.extend(0.0).to_array()))
             .collect();
         let out_bytes = (records.len() * words * 4) as u64;
-        if rec_data.len() as u64 * 16 > self.max_binding || out_bytes > self.max_binding {
+        let largest = [rec_data.len() * 16, tri_data.len() * 16, out_bytes as usize]
+            .into_iter()
+            .max()
+            .unwrap_or(0) as u64;
+        if largest > self.max_binding {
             return Err(format!(
-                "{} records exceed the adapter's storage buffer size ({} bytes)",
+                "{} records and {} dynamic triangles exceed the adapter's storage buffer size \
+                 ({} bytes)",
                 records.len(),
+                set.triangles.len(),
                 self.max_binding
             ));
         }
@@ -248,7 +254,6 @@ impl Visibility for GpuVisibility {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("visibility"),
             });
-        let mut uniforms = Vec::new();
         for start in (0..records.len()).step_by(per_chunk) {
             let count = per_chunk.min(records.len() - start);
             let groups = (count as u64 * tris).div_ceil(WORKGROUP);
@@ -296,7 +301,6 @@ impl Visibility for GpuVisibility {
                 pass.set_bind_group(0, &bind, &[]);
                 pass.dispatch_workgroups(groups_x as u32, groups_y as u32, 1);
             }
-            uniforms.push(b_params);
         }
         encoder.copy_buffer_to_buffer(&b_flags, 0, &b_read, 0, out_bytes);
         self.queue.submit([encoder.finish()]);
@@ -362,8 +366,9 @@ fn log_once(why: &str) {
     ONCE.call_once(|| eprintln!("anchorage: visibility on the CPU: {why}"));
 }
 
-/// Opens an adapter for a test. Without one the test is skipped with a line saying why,
+/// Opens an adapter for a test (public for the integration tests, not for users). Without one the test is skipped with a line saying why,
 /// unless `ANCHORAGE_REQUIRE_GPU` is set (CI sets it: there, no adapter is a failure).
+#[doc(hidden)]
 pub fn adapter_for_tests() -> Option<GpuVisibility> {
     match GpuVisibility::new() {
         Ok(g) => Some(g),

@@ -203,16 +203,7 @@ fn an_occluder_that_comes_and_goes() {
 #[test]
 fn anchors_give_the_same_bytes_with_one_and_two_threads() {
     let dir = tempfile::tempdir().unwrap();
-    let job = dir.path().join("job.json");
-    std::fs::write(
-        &job,
-        format!(
-            r#"{{"scene":[{{"path":"{}"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":2}},
-            "method":{{"name":"anchors","preset":"draft"}}}}"#,
-            root().join("examples/room/room.gltf").display()
-        ),
-    )
-    .unwrap();
+    let job = small_room_job(dir.path(), "anchors");
     let names: Vec<String> = (4..=7).map(|f| format!("job.{f:04}.exr")).collect();
     assert_same_bytes_with_1_and_2_threads(&job, &["--frames", "4-7"], &names);
 }

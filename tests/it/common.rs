@@ -190,6 +190,22 @@ impl RawGltf {
     }
 }
 
+/// Writes `dir/job.json`: the example room at 48×36, 2 samples per pixel, `method` at the
+/// draft preset, frames 0–48 (for the thread-determinism checks).
+pub fn small_room_job(dir: &Path, method: &str) -> PathBuf {
+    let job = dir.join("job.json");
+    std::fs::write(
+        &job,
+        format!(
+            r#"{{"scene":[{{"path":"{}"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":2}},
+            "method":{{"name":"{method}","preset":"draft"}}}}"#,
+            root().join("examples/room/room.gltf").display()
+        ),
+    )
+    .unwrap();
+    job
+}
+
 /// Renders `job` with `args` on 1 and 2 threads and asserts that every file in `names` (paths
 /// under the output directory) has the same bytes both times.
 pub fn assert_same_bytes_with_1_and_2_threads(job: &Path, args: &[&str], names: &[String]) {

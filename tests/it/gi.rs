@@ -250,16 +250,7 @@ fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
 #[test]
 fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
     let dir = tempfile::tempdir().unwrap();
-    let job = dir.path().join("job.json");
-    std::fs::write(
-        &job,
-        format!(
-            r#"{{"scene":[{{"path":"{}"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":2}},
-            "method":{{"name":"brute-force","preset":"draft"}}}}"#,
-            root().join("examples/room/room.gltf").display()
-        ),
-    )
-    .unwrap();
+    let job = small_room_job(dir.path(), "brute-force");
     for method in ["brute-force", "precomputed"] {
         let names: Vec<String> = (4..=6).map(|f| format!("job.{f:04}.exr")).collect();
         assert_same_bytes_with_1_and_2_threads(
