@@ -23,7 +23,7 @@ use obvhs::bvh2::Bvh2;
 use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
 
-use crate::scene::{Geometry, Motion};
+use crate::geom::{Geometry, Motion};
 
 /// Relative offset of ray origins from surfaces: 2^-17 of the largest vertex coordinate of
 /// the triangle left behind (a few ulps of f32's 2^-24 relative precision, times margin for
@@ -285,8 +285,7 @@ pub fn offset_of(t: &Triangle) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::frame::triangle;
-    use crate::scene::{Geometry, TriangleShading};
+    use crate::geom::{Geometry, TriangleShading, triangle};
 
     fn geometry(tris: &[Triangle]) -> Geometry {
         Geometry {

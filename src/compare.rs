@@ -18,12 +18,14 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::gi::Preset;
+use crate::integrator::FrameImage;
+use crate::integrator::Preset;
 use crate::job::{Job, Method, VisibilityChoice};
 use crate::output;
-use crate::pipeline::{self, FrameStats};
-use crate::render::FrameImage;
+use crate::pipeline;
 use crate::scene::Scene;
+use crate::session::FrameState;
+use crate::stats::FrameStats;
 
 /// One method at one preset, optionally with one setting changed.
 #[derive(Debug, Clone, PartialEq)]
@@ -127,7 +129,7 @@ pub fn parse_preset(s: &str) -> Option<Preset> {
 #[derive(Debug, Clone, Serialize)]
 pub struct Score {
     pub label: String,
-    pub method: &'static str,
+    pub method: String,
     pub preset: &'static str,
     pub seconds_per_frame_median: f64,
     pub rms_error_pct: f64,
@@ -189,14 +191,14 @@ fn run(job: &Job, scene: &Scene, v: &Variant) -> Result<Run> {
     if let Some(s) = &v.setting {
         s.apply(&mut job);
     }
-    let statics = scene.statics();
-    let mut session = pipeline::new_session(&job)?;
+    let resources = pipeline::new_resources(&job, scene)?;
+    let mut state = FrameState::default();
     let mut images = Vec::new();
     let mut stats = Vec::new();
     for f in job.frames.start..=job.frames.end {
         let t = Instant::now();
         let mut s = pipeline::new_stats(&job, f);
-        let img = pipeline::render_frame(&job, scene, &statics, &mut session, f, &mut s)?;
+        let img = pipeline::render_frame(&job, scene, &resources, &mut state, f, &mut s)?;
         s.timings_s.total = t.elapsed().as_secs_f64();
         images.push(img);
         stats.push(s);

@@ -21,8 +21,8 @@ pub fn report(job: &Job, scene: &Scene) -> String {
                 .map(|p| p.indices.len() / 3)
                 .sum();
             let motion = match n.motion {
-                crate::scene::Motion::Static => "static",
-                crate::scene::Motion::Dynamic => "dynamic",
+                crate::geom::Motion::Static => "static",
+                crate::geom::Motion::Dynamic => "dynamic",
             };
             let extra = match (
                 n.skin.is_some(),
@@ -125,7 +125,7 @@ pub fn report(job: &Job, scene: &Scene) -> String {
         match &scene.camera {
             Some(crate::scene::CameraChoice::Node { layer, node }) =>
                 format!("layer {layer} {}", scene.layers[*layer].node_label(*node)),
-            Some(crate::scene::CameraChoice::Job(_)) => "from the job file".into(),
+            Some(crate::scene::CameraChoice::LookAt(_)) => "from the job file".into(),
             None => "none (a render needs one)".into(),
         }
     );

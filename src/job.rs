@@ -8,16 +8,20 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use clap::ValueEnum;
 use glam::{EulerRot, Mat4, Quat, Vec3};
-use serde::Deserialize;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 
+use crate::anchor::AnchorParams;
 use crate::error::{Error, Result};
-use crate::gi::coherent::AnchorParams;
-use crate::gi::{GiParams, Preset};
-use crate::scene::Motion;
+use crate::geom::Motion;
+use crate::integrator::{GiParams, Preset};
+use crate::scene::{CameraSpec, LayerDesc, LookAt, Scene, SceneDesc};
+pub use crate::visibility::VisibilityChoice;
 
 /// The job file as written on disk.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct JobFile {
     /// glTF layers composed into one scene, like USD references. At least one.
@@ -25,14 +29,16 @@ pub struct JobFile {
     /// Camera: a glTF camera node by name, or one given here. Default: the first glTF camera.
     #[serde(default)]
     pub camera: Option<CameraFile>,
-    /// Image size in pixels, `[width, height]`. Default `[640, 360]`.
+    /// Image size in pixels, `[width, height]`, each 1..=16384. Default `[640, 360]`.
     #[serde(default = "default_resolution")]
+    #[schemars(inner(range(min = 1, max = 16384)))]
     pub resolution: [u32; 2],
     /// Inclusive frame range. Default: frame 0 only.
     #[serde(default)]
     pub frames: Option<FrameRange>,
     /// Frames per second for frame ↔ time mapping. Default 24.
     #[serde(default = "default_fps")]
+    #[schemars(extend("exclusiveMinimum" = 0))]
     pub fps: f64,
     /// The frame number at animation time 0 (Blender's exporter writes time 0 at its scene's
     /// start frame, usually 1). Default 0: frame `f` is at time `f / fps`.
@@ -60,7 +66,7 @@ fn default_fps() -> f64 {
 }
 
 /// One glTF file in the composition.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LayerFile {
     /// Path of the `.gltf` or `.glb`, relative to the job file.
@@ -74,7 +80,7 @@ pub struct LayerFile {
 }
 
 /// A layer transform: scale, then rotation, then translation.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TransformFile {
     #[serde(default)]
@@ -87,7 +93,7 @@ pub struct TransformFile {
     pub scale: Option<Scale>,
 }
 
-#[derive(Debug, Clone, Copy, Deserialize)]
+#[derive(Debug, Clone, Copy, Deserialize, JsonSchema)]
 #[serde(untagged)]
 pub enum Scale {
     Uniform(f32),
@@ -118,7 +124,7 @@ impl TransformFile {
 }
 
 /// Camera given in the job file.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, untagged)]
 pub enum CameraFile {
     /// A glTF camera node by name (searched in layer order).
@@ -129,7 +135,8 @@ pub enum CameraFile {
         look_at: [f32; 3],
         #[serde(default = "default_up")]
         up: [f32; 3],
-        /// Vertical field of view in degrees.
+        /// Vertical field of view in degrees, in (0, 180).
+        #[schemars(extend("exclusiveMinimum" = 0, "exclusiveMaximum" = 180))]
         yfov_deg: f32,
     },
 }
@@ -138,14 +145,14 @@ fn default_up() -> [f32; 3] {
     [0.0, 1.0, 0.0]
 }
 
-#[derive(Debug, Clone, Copy, Deserialize)]
+#[derive(Debug, Clone, Copy, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FrameRange {
     pub start: i32,
     pub end: i32,
 }
 
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct OutputFile {
     /// Output directory, relative to the job file. Default `render`.
@@ -157,12 +164,14 @@ pub struct OutputFile {
 }
 
 /// Sampling settings ([`RenderSettings::default`] gives the defaults).
-#[derive(Debug, Clone, Copy, Deserialize)]
+#[derive(Debug, Clone, Copy, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct RenderSettings {
     /// Camera samples per pixel (box filter over the pixel). Default 16.
+    #[schemars(range(min = 1, max = 65536))]
     pub samples_per_pixel: u32,
     /// Samples of the emissive-triangle lights per camera sample. Default 1.
+    #[schemars(range(min = 1, max = 1024))]
     pub light_samples: u32,
     /// Where the anchor method's visibility detection runs (`--visibility`). Default auto.
     pub visibility: VisibilityChoice,
@@ -178,21 +187,10 @@ impl Default for RenderSettings {
     }
 }
 
-/// Where visibility detection (§3.2) runs.
-#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum VisibilityChoice {
-    /// A hardware GPU adapter when there is one, else the CPU (one log line says why).
-    #[default]
-    Auto,
-    /// Any GPU adapter, software ones included; an error when there is none.
-    Gpu,
-    /// The CPU implementation.
-    Cpu,
-}
-
 /// The global-illumination method (`--method` on the command line).
-#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema, clap::ValueEnum,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
     /// The paper's anchors: temporally coherent final gathering (the default).
@@ -209,44 +207,50 @@ pub enum Method {
 }
 
 impl Method {
-    pub fn name(self) -> &'static str {
-        match self {
-            Method::Anchors => "anchors",
-            Method::Direct => "direct",
-            Method::BruteForce => "brute-force",
-            Method::Precomputed => "precomputed",
-            Method::PathTrace => "path-trace",
-        }
-    }
-
-    pub fn parse(s: &str) -> Option<Method> {
-        [
-            Method::Anchors,
-            Method::Direct,
-            Method::BruteForce,
-            Method::Precomputed,
-            Method::PathTrace,
-        ]
-        .into_iter()
-        .find(|m| m.name() == s)
+    /// The method's name as the job file and the command line spell it.
+    pub fn name(self) -> String {
+        self.to_possible_value()
+            .map(|v| v.get_name().to_string())
+            .unwrap_or_default()
     }
 }
 
 /// Method settings: a preset, then any of its values overridden. Defaults are the
 /// `production` preset's (README.md lists them with what each costs and buys).
-#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct MethodSettings {
+    /// The method (`--method`). Default `anchors`.
     pub name: Method,
+    /// The speed/accuracy preset whose values the keys below override. Default `production`.
     pub preset: Preset,
+    /// Photons emitted per frame. Default: the preset's (50 000, 200 000, 800 000).
+    #[schemars(range(min = 1, max = 100_000_000))]
     pub photons: Option<u32>,
+    /// Photons per irradiance estimate. Default: the preset's (32, 64, 100).
+    #[schemars(range(min = 1, max = 1000))]
     pub k: Option<u32>,
+    /// `[M, N]`: θ × φ strata of the final gather, M·N rays per cache record. Default: the
+    /// preset's (8×24, 12×36, 30×60).
+    #[schemars(inner(range(min = 1, max = 256)))]
     pub strata: Option<[u32; 2]>,
+    /// Ward's error threshold a, in (0, 2]. Default: the preset's (0.4, 0.25, 0.15).
+    #[schemars(extend("exclusiveMinimum" = 0, "maximum" = 2))]
     pub error: Option<f32>,
+    /// A record is valid out to a·R, clamped to at least this many pixel footprints
+    /// (> 0, at most `max_spacing_px`). Default: the preset's (3, 2, 1.5).
+    #[schemars(extend("exclusiveMinimum" = 0))]
     pub min_spacing_px: Option<f32>,
+    /// ... and to at most this many. Default: the preset's (32, 24, 16).
+    #[schemars(extend("exclusiveMinimum" = 0))]
     pub max_spacing_px: Option<f32>,
+    /// Frames a cache record may go unused before it is removed. Default 2.
     pub max_age: Option<u32>,
+    /// `path-trace` samples per pixel. Default: the preset's (64, 256, 1024).
+    #[schemars(range(min = 1, max = 1_048_576))]
     pub path_samples: Option<u32>,
+    /// `path-trace` maximum path length. Default: the preset's (8, 12, 16).
+    #[schemars(range(min = 1, max = 40))]
     pub path_depth: Option<u32>,
     /// `anchors` settings (each key defaults as documented in README.md).
     pub anchors: Option<AnchorParams>,
@@ -369,8 +373,8 @@ pub struct Overrides {
 #[derive(Debug, Clone)]
 pub struct Job {
     pub path: PathBuf,
-    pub layers: Vec<Layer>,
-    pub camera: Option<CameraFile>,
+    pub layers: Vec<LayerDesc>,
+    pub camera: Option<CameraSpec>,
     pub width: u32,
     pub height: u32,
     pub frames: FrameRange,
@@ -381,13 +385,6 @@ pub struct Job {
     pub seed: u32,
     pub render: RenderSettings,
     pub method: MethodSettings,
-}
-
-#[derive(Debug, Clone)]
-pub struct Layer {
-    pub path: PathBuf,
-    pub transform: Mat4,
-    pub tags: BTreeMap<String, Motion>,
 }
 
 impl Job {
@@ -471,7 +468,7 @@ impl Job {
                     "must be finite and invertible",
                 ));
             }
-            layers.push(Layer {
+            layers.push(LayerDesc {
                 path: base.join(&l.path),
                 transform: m,
                 tags: l.tags.clone(),
@@ -528,7 +525,20 @@ impl Job {
         Ok(Job {
             path: path.to_path_buf(),
             layers,
-            camera: file.camera,
+            camera: file.camera.map(|c| match c {
+                CameraFile::Node { node } => CameraSpec::Node(node),
+                CameraFile::LookAt {
+                    position,
+                    look_at,
+                    up,
+                    yfov_deg,
+                } => CameraSpec::LookAt(LookAt {
+                    position: Vec3::from(position),
+                    look_at: Vec3::from(look_at),
+                    up: Vec3::from(up),
+                    yfov: yfov_deg.to_radians(),
+                }),
+            }),
             width,
             height,
             frames,
@@ -540,6 +550,47 @@ impl Job {
             render: rs,
             method,
         })
+    }
+
+    /// What [`Scene::load`] reads for this job.
+    pub fn scene_desc(&self) -> SceneDesc<'_> {
+        SceneDesc {
+            file: &self.path,
+            layers: &self.layers,
+            camera: self.camera.as_ref(),
+        }
+    }
+
+    /// Loads the job's scene (layers, tags, camera) and checks the frame range against its
+    /// animation: everything a render needs.
+    pub fn load_scene(&self) -> Result<Scene> {
+        let scene = Scene::load(&self.scene_desc())?;
+        if let Some((t0, t1)) = scene.time_range() {
+            let half = (0.5 / self.fps) as f32;
+            for (key, f) in [
+                ("frames.start", self.frames.start),
+                ("frames.end", self.frames.end),
+            ] {
+                let t = self.time_of(f);
+                if t < t0 - half || t > t1 + half {
+                    let (first, last) = self.frames_in(t0, t1);
+                    return Err(Error::input(
+                        &self.path,
+                        key,
+                        format!(
+                            "frame {f} (t = {t:.4} s at {} fps, frame_offset {}) is outside the animation, which spans t = {t0:.4}..{t1:.4} s (frames {first:.0}..{last:.0})",
+                            self.fps, self.frame_offset,
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(scene)
+    }
+
+    /// Loads the layers and resolves tags without requiring a camera (`inspect`).
+    pub fn load_scene_layers(&self) -> Result<Scene> {
+        Scene::load_layers(&self.scene_desc())
     }
 
     /// Animation time in seconds of `frame`.
@@ -578,4 +629,12 @@ fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> Error {
         format!("line {line}, column {}", e.column()),
         format!("{e}\n    {excerpt}"),
     )
+}
+
+/// The JSON Schema of job files (`schemas/job.schema.json`), generated from [`JobFile`].
+pub fn schema() -> schemars::Schema {
+    let mut s = schemars::schema_for!(JobFile);
+    s.insert("$id".into(), "anchorage/job.schema.json".into());
+    s.insert("title".into(), "anchorage job file".into());
+    s
 }

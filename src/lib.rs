@@ -2,23 +2,43 @@
 //! caching made temporally coherent by anchors (Smyk, Kinuwaki, Ďurikovič, Myszkowski,
 //! "Temporally Coherent Irradiance Caching for High Quality Animation Rendering").
 //!
-//! Stages, in data-flow order (DESIGN.md): [`job`] → [`scene`] (glTF layers, tags,
-//! animation) → [`accel`] (static and dynamic BVHs) → [`render`] (shading) → [`output`]
-//! (EXR, stats, preview), driven frame by frame by [`pipeline`].
+//! Modules by pipeline stage, each importing only those listed before it (DESIGN.md, Data
+//! flow):
+//!
+//! - leaves: [`error`], [`geom`] (the shared vocabulary), [`color`] (colour and compact
+//!   encodings), [`sampling`] (named sample streams);
+//! - [`accel`]: the static and dynamic BVHs;
+//! - [`scene`]: glTF layers, tags, animation, and the per-frame scene [`scene::FrameScene`];
+//! - [`interaction`]: surface points, tracing and direct light;
+//! - the paper's stages: [`photon`] (photon maps, §4.2), [`anchor`] (anchors, Pseudocode 1,
+//!   §3), [`cache`] (irradiance cache records and strata, §4.1), [`visibility`] (strata that
+//!   see dynamic prims, §3.2);
+//! - [`integrator`]: the one pixel loop and the methods, Pseudocode 2 among them;
+//! - [`session`]: the state a frame hands to the next;
+//! - [`job`], [`stats`], [`output`], [`pipeline`] (the frame loop), [`inspect`] and
+//!   [`compare`], driven by the thin `main`.
 
 // `!(x > 0.0)` is deliberate throughout: it rejects NaN as well as non-positive values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod accel;
+pub mod anchor;
+pub mod cache;
+pub mod color;
 pub mod compare;
 pub mod error;
-pub mod gi;
+pub mod geom;
 pub mod inspect;
+pub mod integrator;
+pub mod interaction;
 pub mod job;
 pub mod output;
+pub mod photon;
 pub mod pipeline;
-pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod session;
+pub mod stats;
+pub mod visibility;
 
 pub use error::{Error, Result};

@@ -6,7 +6,6 @@ use std::process::ExitCode;
 
 use anchorage::job::{FrameRange, Job, Overrides, VisibilityChoice};
 use anchorage::pipeline::{self, Progress, RenderOptions};
-use anchorage::scene::Scene;
 use anchorage::{Error, inspect};
 use clap::{Parser, Subcommand};
 
@@ -119,7 +118,7 @@ fn set_threads(threads: Option<usize>) -> Result<(), Error> {
 }
 
 fn parse_method(s: &str) -> Result<anchorage::job::Method, Error> {
-    anchorage::job::Method::parse(s).ok_or_else(|| {
+    <anchorage::job::Method as clap::ValueEnum>::from_str(s, false).map_err(|_| {
         Error::input(
             "--method",
             s,
@@ -169,7 +168,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             };
             set_threads(threads)?;
             let job = Job::load(&job, &overrides)?;
-            let scene = Scene::load(&job)?;
+            let scene = job.load_scene()?;
             for w in scene.warnings() {
                 eprintln!("anchorage: warning: {w}");
             }
@@ -259,7 +258,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 },
                 setting: None,
             };
-            let scene = Scene::load(&job)?;
+            let scene = job.load_scene()?;
             anchorage::output::check_output_dir(&job.out_dir)?;
             let report = anchorage::compare::compare(&job, &scene, &variants, &reference)?;
             print!("{}", anchorage::compare::table(&report));
@@ -280,13 +279,13 @@ fn run(cli: Cli) -> Result<(), Error> {
             } else {
                 job_for_scene(&path)?
             };
-            let scene = Scene::load_layers(&job)?;
+            let scene = job.load_scene_layers()?;
             print!("{}", inspect::report(&job, &scene));
             Ok(())
         }
         Command::Validate { job } => {
             let job = Job::load(&job, &Overrides::default())?;
-            let scene = Scene::load(&job)?;
+            let scene = job.load_scene()?;
             for w in scene.warnings() {
                 eprintln!("anchorage: warning: {w}");
             }

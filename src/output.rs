@@ -9,7 +9,7 @@ use exr::prelude::*;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::render::FrameImage;
+use crate::integrator::FrameImage;
 
 /// Writes a file through `write` to a temporary name beside `path`, then renames it.
 pub fn write_atomic(

@@ -5,114 +5,19 @@
 use std::io::IsTerminal;
 use std::time::Instant;
 
-use serde::Serialize;
-
+use crate::anchor::BYTES_PER_ANCHOR;
+use crate::cache::Stratum;
 use crate::error::{Error, Result};
-use crate::gi::{self, Session};
+use crate::integrator::cached::{self, CachedMethod, CachedState};
+use crate::integrator::path::PathTracer;
+use crate::integrator::{FrameContext, FrameImage, direct, path};
+use crate::interaction::Materials;
 use crate::job::{Job, Method};
 use crate::output;
-use crate::render::{self, FrameImage, Materials};
-use crate::scene::{Scene, StaticSet};
-
-/// Per-stage wall-clock seconds (`schemas/stats.schema.json`).
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Timings {
-    /// Evaluating animation, skinning and morphing of dynamic prims.
-    pub scene_evaluation: f64,
-    /// Evaluating static prims and building their BVH (first frame of a render only).
-    pub static_bvh: f64,
-    pub dynamic_bvh: f64,
-    /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
-    /// gather hits, or precomputation), final gathering (tracing gather rays) and cache
-    /// interpolation (shading from the cache). Zero for methods without that stage.
-    pub photon_tracing: f64,
-    pub irradiance_estimation: f64,
-    pub final_gathering: f64,
-    pub cache_interpolation: f64,
-    /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).
-    pub visibility: f64,
-    /// Direct light at camera hits (for `path-trace`: the whole path tracing).
-    pub direct_lighting: f64,
-    pub output: f64,
-    pub total: f64,
-}
-
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Counts {
-    pub triangles_static: u64,
-    pub triangles_dynamic: u64,
-    pub punctual_lights: u64,
-    pub emissive_triangles: u64,
-    pub pixels: u64,
-    pub camera_rays: u64,
-    pub shadow_rays: u64,
-    /// Photons stored this frame.
-    pub photons: u64,
-    /// Irradiance cache records in use this frame.
-    pub caches: u64,
-    /// Final-gather rays traced this frame.
-    pub rays_shot: u64,
-    /// Pixel samples no cache record covered, gathered on the spot.
-    pub uncached_samples: u64,
-    /// Final-gather rays traced this frame by records that existed before it (for
-    /// `anchors`, the re-shot strata; for brute force, every stratum of every record).
-    pub rays_reshot: u64,
-    /// `anchors`: anchors whose irradiance was estimated again this frame.
-    pub anchors_reestimated: u64,
-    /// Live anchors, and anchors created this frame (`anchors`).
-    pub anchors: u64,
-    pub anchors_created: u64,
-}
-
-/// Live anchors by how many strata link them (the paper's Figure 8).
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct AnchorReuse {
-    #[serde(rename = "1")]
-    pub one: u64,
-    #[serde(rename = "2-10")]
-    pub two_to_10: u64,
-    #[serde(rename = "11-100")]
-    pub eleven_to_100: u64,
-    #[serde(rename = "101-1000")]
-    pub hundred_one_to_1000: u64,
-    #[serde(rename = ">1000")]
-    pub over_1000: u64,
-}
-
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Memory {
-    pub geometry_static_bytes: u64,
-    pub geometry_dynamic_bytes: u64,
-    pub bvh_static_bytes: u64,
-    pub bvh_dynamic_bytes: u64,
-    pub image_bytes: u64,
-    /// Cached methods: bytes of one stratum and of all strata; `anchors`: of one anchor and
-    /// of all anchors.
-    pub bytes_per_stratum: u64,
-    pub strata_bytes: u64,
-    pub bytes_per_anchor: u64,
-    pub anchors_bytes: u64,
-}
-
-/// The stats JSON written beside each frame.
-#[derive(Debug, Clone, Serialize)]
-pub struct FrameStats {
-    pub frame: i32,
-    /// Animation time of the frame in seconds.
-    pub time: f32,
-    pub method: &'static str,
-    /// `anchors` only: the visibility implementation that ran.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub visibility: Option<String>,
-    pub resolution: [u32; 2],
-    pub samples_per_pixel: u32,
-    pub timings_s: Timings,
-    pub counts: Counts,
-    pub memory: Memory,
-    /// `anchors` only.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub anchor_reuse: Option<AnchorReuse>,
-}
+use crate::scene::Scene;
+use crate::session::{FrameState, Resources};
+use crate::stats::{AnchorReuse, Counts, FrameStats, Memory, Timings};
+use crate::visibility::{self, CpuVisibility};
 
 /// How frames are reported while rendering.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -128,60 +33,54 @@ pub struct RenderOptions {
     pub progress: Progress,
 }
 
-/// Renders one frame in memory: the AOVs and the stats (no files written). `session` carries
-/// the irradiance cache from frame to frame.
+/// Renders one frame in memory: the AOVs and the stats (no files written). `state` carries
+/// the cache and anchors from frame to frame.
 pub fn render_frame(
     job: &Job,
     scene: &Scene,
-    statics: &StaticSet,
-    session: &mut Session,
+    resources: &Resources,
+    state: &mut FrameState,
     frame: i32,
     stats: &mut FrameStats,
 ) -> Result<FrameImage> {
-    let t = job.time_of(frame);
-    let start = Instant::now();
-    let dynamic = scene.geometry(t, crate::scene::Motion::Dynamic);
-    stats.timings_s.scene_evaluation = start.elapsed().as_secs_f64();
-    let start = Instant::now();
-    let fs = crate::scene::FrameScene::new(
-        statics,
-        dynamic,
-        scene.lights(t),
-        scene.camera_at(t, job.width as f32 / job.height as f32),
-        &scene.materials,
-    );
-    stats.timings_s.dynamic_bvh = start.elapsed().as_secs_f64();
-    let m = Materials {
-        materials: &scene.materials,
-        textures: &scene.textures,
+    let aspect = job.width as f32 / job.height as f32;
+    let (fs, et) = scene.evaluate(job.time_of(frame), aspect, &resources.statics);
+    stats.timings_s.scene_evaluation = et.animation;
+    stats.timings_s.dynamic_bvh = et.dynamic_bvh;
+    let ctx = FrameContext {
+        scene: &fs,
+        materials: Materials {
+            materials: &scene.materials,
+            textures: &scene.textures,
+        },
+        width: job.width,
+        height: job.height,
+        seed: job.seed,
+        frame,
     };
     let start = Instant::now();
     let params = job.method.params();
     let rs = &job.render;
-    let (img, rc) = match job.method.name {
-        Method::Direct => {
-            let r = render::render_direct(&fs, m, rs, job.width, job.height, job.seed, frame);
-            stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
-            r
-        }
-        Method::BruteForce | Method::Precomputed | Method::Anchors => {
-            let pre = match job.method.name {
-                Method::Precomputed => gi::CachedMethod::Precomputed,
-                Method::Anchors => gi::CachedMethod::Anchors,
-                _ => gi::CachedMethod::BruteForce,
+    let cached = match job.method.name {
+        Method::Direct | Method::PathTrace => None,
+        Method::BruteForce => Some(CachedMethod::BruteForce),
+        Method::Precomputed => Some(CachedMethod::Precomputed),
+        Method::Anchors => Some(CachedMethod::Anchors),
+    };
+    let (img, rc) = match (job.method.name, cached) {
+        (_, Some(method)) => {
+            let state = CachedState {
+                cache: &mut state.cache,
+                anchors: &mut state.anchors,
             };
-            let (img, rc, gs) = gi::render_cached(
-                &fs,
-                m,
-                session,
+            let (img, rc, gs) = cached::render(
+                &ctx,
+                state,
                 &params,
-                pre,
+                method,
+                resources.visibility.as_ref(),
                 rs.samples_per_pixel,
                 rs.light_samples,
-                job.width,
-                job.height,
-                job.seed,
-                frame,
             )
             .map_err(|e| Error::Render(format!("frame {frame}: {e}")))?;
             let t = &mut stats.timings_s;
@@ -197,10 +96,7 @@ pub fn render_frame(
             c.uncached_samples = gs.uncached_samples;
             c.rays_reshot = gs.rays_shot;
             if let Some(a) = &gs.anchors {
-                stats.visibility = Some(match &session.visibility {
-                    Some(v) => v.name(),
-                    None => gi::visibility::Visibility::name(&gi::visibility::CpuVisibility),
-                });
+                stats.visibility = Some(resources.visibility.name());
                 c.anchors = a.anchors;
                 c.anchors_created = a.anchors_created;
                 c.anchors_reestimated = a.anchors_reestimated;
@@ -213,28 +109,25 @@ pub fn render_frame(
                     hundred_one_to_1000: a.reuse_histogram[3],
                     over_1000: a.reuse_histogram[4],
                 });
-                stats.memory.bytes_per_anchor = gi::anchors::BYTES_PER_ANCHOR as u64;
-                stats.memory.anchors_bytes = a.anchors * gi::anchors::BYTES_PER_ANCHOR as u64;
+                stats.memory.bytes_per_anchor = BYTES_PER_ANCHOR as u64;
+                stats.memory.anchors_bytes = a.anchors * BYTES_PER_ANCHOR as u64;
             }
-            stats.memory.bytes_per_stratum = size_of::<gi::cache::Stratum>() as u64;
-            stats.memory.strata_bytes = c.caches
-                * (job.method.params().cache.strata[0] * job.method.params().cache.strata[1])
-                    as u64
-                * size_of::<gi::cache::Stratum>() as u64;
+            let strata = params.cache.strata[0] * params.cache.strata[1];
+            stats.memory.bytes_per_stratum = size_of::<Stratum>() as u64;
+            stats.memory.strata_bytes = c.caches * strata as u64 * size_of::<Stratum>() as u64;
             (img, rc)
         }
-        Method::PathTrace => {
-            let r = gi::path_trace(
-                &fs,
-                m,
-                params.path_samples,
-                params.path_depth,
-                rs.light_samples,
-                job.width,
-                job.height,
-                job.seed,
-                frame,
-            );
+        (Method::PathTrace, None) => {
+            let tracer = PathTracer {
+                depth: params.path_depth,
+                light_samples: rs.light_samples,
+            };
+            let r = path::render(&ctx, params.path_samples, &tracer);
+            stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
+            r
+        }
+        (_, None) => {
+            let r = direct::render(&ctx, rs.samples_per_pixel, rs.light_samples);
             stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
             r
         }
@@ -250,20 +143,24 @@ pub fn render_frame(
     let mem = &mut stats.memory;
     mem.geometry_static_bytes = fs.static_geometry.bytes() as u64;
     mem.geometry_dynamic_bytes = fs.dynamic_geometry.bytes() as u64;
-    mem.bvh_static_bytes = statics.bvh.bytes() as u64;
+    mem.bvh_static_bytes = resources.statics.bvh.bytes() as u64;
     mem.bvh_dynamic_bytes = fs.accel.dynamic_bytes() as u64;
     mem.image_bytes = c.pixels * 8 * 4;
     Ok(img)
 }
 
-/// A session for `job`: empty caches and, for the anchor method, the visibility
-/// implementation that `render.visibility` chooses.
-pub fn new_session(job: &Job) -> Result<Session> {
-    let mut session = Session::default();
-    if job.method.name == Method::Anchors {
-        session.visibility = gi::gpu::choose(job.render.visibility).map_err(Error::Render)?;
-    }
-    Ok(session)
+/// The resources of a render of `job`: the static set with its BVH and, for the anchor
+/// method, the visibility implementation that `render.visibility` chooses.
+pub fn new_resources(job: &Job, scene: &Scene) -> Result<Resources> {
+    let visibility = if job.method.name == Method::Anchors {
+        visibility::gpu::choose(job.render.visibility).map_err(|e| Error::Render(e.to_string()))?
+    } else {
+        Box::new(CpuVisibility)
+    };
+    Ok(Resources {
+        statics: scene.statics(),
+        visibility,
+    })
 }
 
 /// Stats of `frame` with every number zero.
@@ -290,7 +187,7 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
 pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
     output::check_output_dir(&job.out_dir)?;
     let start = Instant::now();
-    let statics = scene.statics();
+    let resources = new_resources(job, scene)?;
     let static_time = start.elapsed().as_secs_f64();
     let frames: Vec<i32> = (job.frames.start..=job.frames.end).collect();
     let bar = (opts.progress == Progress::Auto && std::io::stderr().is_terminal()).then(|| {
@@ -305,14 +202,14 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         b
     });
     let mut all = Vec::new();
-    let mut session = new_session(job)?;
+    let mut state = FrameState::default();
     for (i, &frame) in frames.iter().enumerate() {
         let t0 = Instant::now();
         let mut stats = new_stats(job, frame);
         if i == 0 {
             stats.timings_s.static_bvh = static_time;
         }
-        let img = render_frame(job, scene, &statics, &mut session, frame, &mut stats)?;
+        let img = render_frame(job, scene, &resources, &mut state, frame, &mut stats)?;
         let t_out = Instant::now();
         let exr = job.frame_path(frame, "exr");
         output::write_exr(&exr, &img)?;

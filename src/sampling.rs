@@ -22,17 +22,65 @@ pub fn hash(values: &[u32]) -> u32 {
     h ^ (h >> 16)
 }
 
-/// The sample stream of one pixel (or photon path) of one frame.
+/// The independent uses of random numbers. Each has its own scramble seed, so that no two
+/// uses ever read correlated samples; the values are part of the output's definition (they
+/// seed every image ever rendered) and must not change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum Stream {
+    /// Camera paths, per pixel and frame: pixel jitter, light samples, path-tracer bounces.
+    Camera = 0,
+    /// Global importons (Suykens 2002), per importon.
+    Importons = 0x1a90_0001,
+    /// Photon paths, per photon: the same in every frame (the paper's §4.2).
+    Photons = 0x5eed_0001,
+    /// Jitter inside a cache record's strata, per record id: the same in every frame.
+    Strata = 0x6a7e_0001,
+}
+
+/// Hands out consecutive sample dimensions, so that the uses of one stream never overlap:
+/// `take(n)` returns the first of `n` dimensions no earlier call returned.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Dims(u32);
+
+impl Dims {
+    pub const fn new() -> Self {
+        Dims(0)
+    }
+
+    pub fn take(&mut self, n: u32) -> u32 {
+        let first = self.0;
+        self.0 += n;
+        first
+    }
+}
+
+/// One scrambled sequence: the samples of one pixel (or photon, or record) of one frame.
 #[derive(Debug, Clone, Copy)]
 pub struct Sampler {
     seed: u32,
 }
 
 impl Sampler {
-    /// `stream` separates independent uses (camera samples, light samples, ...).
-    pub fn new(seed: u32, frame: i32, stream: u32, index: u32) -> Self {
+    /// The sequence of `stream` for element `index` (pixel, importon) of `frame`.
+    pub fn new(seed: u32, frame: i32, stream: Stream, index: u32) -> Self {
         Sampler {
-            seed: hash(&[seed, frame as u32, stream, index]),
+            seed: hash(&[seed, frame as u32, stream as u32, index]),
+        }
+    }
+
+    /// The photons' sequence: sample `i` is photon `i`. Depends on the job's seed only, not on
+    /// the frame, so that photons follow the same paths wherever nothing moved (§4.2).
+    pub fn photons(seed: u32) -> Self {
+        Sampler {
+            seed: hash(&[seed, Stream::Photons as u32]),
+        }
+    }
+
+    /// The stratum jitter of the cache record `id`: sample `s` is stratum `s`.
+    pub fn strata(id: u32) -> Self {
+        Sampler {
+            seed: hash(&[id, Stream::Strata as u32]),
         }
     }
 
@@ -59,16 +107,16 @@ mod tests {
 
     #[test]
     fn samples_are_pure_functions_of_their_inputs() {
-        let a = Sampler::new(1, 2, 0, 3);
-        let b = Sampler::new(1, 2, 0, 3);
+        let a = Sampler::new(1, 2, Stream::Camera, 3);
+        let b = Sampler::new(1, 2, Stream::Camera, 3);
         assert_eq!(a.get(5, 7), b.get(5, 7));
-        assert_ne!(a.get(5, 7), Sampler::new(1, 3, 0, 3).get(5, 7));
+        assert_ne!(a.get(5, 7), Sampler::new(1, 3, Stream::Camera, 3).get(5, 7));
     }
 
     #[test]
     fn one_dimension_is_stratified() {
         // Owen-scrambled Sobol: the first 16 samples put one point in each 1/16 stratum.
-        let s = Sampler::new(0, 0, 0, 42);
+        let s = Sampler::new(0, 0, Stream::Camera, 42);
         let mut hit = [false; 16];
         for i in 0..16 {
             hit[(s.get(i, 3) * 16.0) as usize] = true;

@@ -4,11 +4,12 @@
 
 use std::sync::Arc;
 
-use glam::{Mat3, Mat4, Vec2, Vec3, Vec3A};
-use obvhs::triangle::Triangle;
+use glam::{Mat3, Mat4, Vec2, Vec3};
 
-use super::{Light, LightKind, Material, Motion, Primitive, Projection};
+use super::{Light, LightKind, Material, Primitive, Projection};
 use crate::accel::{Accel, StaticBvh};
+use crate::color::luminance;
+use crate::geom::{Geometry, Motion, Triangle, TriangleShading};
 
 /// Static geometry and its BVH: evaluated and built once per render, shared by every frame.
 #[derive(Clone)]
@@ -27,37 +28,7 @@ impl StaticSet {
     }
 }
 
-/// Per-triangle shading data, parallel to [`Geometry::triangles`].
-#[derive(Debug, Clone, Copy)]
-pub struct TriangleShading {
-    /// Vertex normals (the geometric normal where the mesh has none).
-    pub normals: [Vec3; 3],
-    pub uvs: [Vec2; 3],
-    pub material: u32,
-    /// Global prim (node) index: layers' nodes numbered one after another.
-    pub prim: u32,
-}
-
-/// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
-#[derive(Debug, Clone, Default)]
-pub struct Geometry {
-    pub triangles: Vec<Triangle>,
-    pub shading: Vec<TriangleShading>,
-}
-
 impl Geometry {
-    pub fn len(&self) -> usize {
-        self.triangles.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.triangles.is_empty()
-    }
-
-    pub fn bytes(&self) -> usize {
-        self.triangles.len() * (size_of::<Triangle>() + size_of::<TriangleShading>())
-    }
-
     /// Appends a primitive transformed by `world` — or, when skinned, by its `joints`
     /// matrices (glTF §3.7.3: the mesh node's own transform is then ignored) — after
     /// applying morph `weights`.
@@ -267,7 +238,7 @@ impl Emitters {
                     continue;
                 }
                 let area = 0.5 * (t.v1 - t.v0).cross(t.v2 - t.v0).length();
-                let luminance = m.emission.dot(Vec3::new(0.2126, 0.7152, 0.0722)).max(1e-30);
+                let luminance = luminance(m.emission).max(1e-30);
                 // Power is used only in ratios: area × luminance × sides. Computed in f64 so
                 // that kilometre-sized emitters do not overflow.
                 power.push(area as f64 * luminance as f64 * if m.double_sided { 2.0 } else { 1.0 });
@@ -360,14 +331,5 @@ impl FrameScene {
                 .fold(0.0f32, f32::max)
         };
         m(&self.static_geometry).max(m(&self.dynamic_geometry))
-    }
-}
-
-/// Helper for tests and tools: a triangle from three points.
-pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Triangle {
-    Triangle {
-        v0: Vec3A::from(a),
-        v1: Vec3A::from(b),
-        v2: Vec3A::from(c),
     }
 }

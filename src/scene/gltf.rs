@@ -13,10 +13,11 @@ use gltf::khr_lights_punctual::Kind;
 use gltf::mesh::Mode;
 
 use super::anim::{Animation, Channel, Interpolation, Property, Sampler};
-use super::material::{Material, Texture, TextureRef, Wrap, srgb_to_linear};
+use super::material::{Material, Texture, TextureRef, Wrap};
 use super::{
     Camera, Layer, Light, LightKind, Mesh, MorphTarget, Motion, Node, Primitive, Projection, Skin,
 };
+use crate::color::srgb_to_linear;
 use crate::error::{Error, Result};
 
 /// Extensions whose meaning the renderer implements.

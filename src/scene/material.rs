@@ -59,15 +59,6 @@ impl Texture {
     }
 }
 
-/// sRGB electro-optical transfer function (IEC 61966-2-1), 8-bit code value → linear.
-pub fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
-
 /// A base colour texture reference.
 #[derive(Debug, Clone, Copy)]
 pub struct TextureRef {
@@ -134,13 +125,6 @@ mod tests {
         assert_eq!(Wrap::MirroredRepeat.apply(4, 4), 3);
         assert_eq!(Wrap::MirroredRepeat.apply(-1, 4), 0);
         assert_eq!(Wrap::MirroredRepeat.apply(8, 4), 0);
-    }
-
-    #[test]
-    fn srgb_decoding_matches_reference_points() {
-        assert_eq!(srgb_to_linear(0.0), 0.0);
-        assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
-        assert!((srgb_to_linear(0.5) - 0.214_041).abs() < 1e-5);
     }
 
     #[test]

@@ -14,25 +14,48 @@ pub mod frame;
 pub mod gltf;
 pub mod material;
 
-use std::collections::HashMap;
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use glam::{Mat4, Quat, Vec3};
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-pub use frame::{FrameCamera, FrameScene, Geometry, PunctualLight, StaticSet, TriangleShading};
+pub use frame::{FrameCamera, FrameScene, PunctualLight, StaticSet};
 pub use material::{Material, Texture};
 
 use crate::error::{Error, Result};
-use crate::job::{CameraFile, Job};
+use crate::geom::{Geometry, Motion};
 use anim::{Animation, Property};
 
-/// Whether a prim may change between frames (the paper's static/dynamic objects, §3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Motion {
-    Static,
-    Dynamic,
+/// A glTF node's `extras` as far as anchorage reads them: the format of the motion tag
+/// (`schemas/motion-tag.schema.json`, generated from this type; `gltf::motion_tag` reads it).
+///
+/// A glTF node's `extras` may carry `motion`. Blender writes it for an object custom
+/// property named `motion` (glTF exporter with Custom Properties on); usd2gltf writes it for
+/// a USD attribute `gltf:motion`. Children inherit the tag unless they carry their own; a
+/// job file's `scene[i].tags` overrides it by node name. Untagged prims are `dynamic` if an
+/// animation moves them, else `static`. Extras that are not an object, and every other
+/// key, are ignored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct MotionTag {
+    /// `static`: never moves (the paper's static objects; anchors and caches may live on
+    /// it). `dynamic`: may move or deform between frames.
+    pub motion: Option<Motion>,
+}
+
+impl MotionTag {
+    /// The JSON Schema of the tag (`schemas/motion-tag.schema.json`).
+    pub fn schema() -> schemars::Schema {
+        let mut s = schemars::schema_for!(MotionTag);
+        s.insert("$id".into(), "anchorage/motion-tag.schema.json".into());
+        s.insert(
+            "title".into(),
+            "anchorage motion tag (glTF node extras)".into(),
+        );
+        s
+    }
 }
 
 /// Why a node has the motion it has (reported by `anchorage inspect`).
@@ -183,7 +206,44 @@ pub struct Scene {
 #[derive(Debug, Clone)]
 pub enum CameraChoice {
     Node { layer: usize, node: usize },
-    Job(CameraFile),
+    LookAt(LookAt),
+}
+
+/// A pinhole camera given by position, target and up vector.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LookAt {
+    pub position: Vec3,
+    pub look_at: Vec3,
+    pub up: Vec3,
+    /// Vertical field of view in radians.
+    pub yfov: f32,
+}
+
+/// The camera a scene description asks for.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CameraSpec {
+    /// A glTF camera node by name, searched in layer order.
+    Node(String),
+    LookAt(LookAt),
+}
+
+/// One glTF file of a composition, as a job describes it (like a USD reference).
+#[derive(Debug, Clone)]
+pub struct LayerDesc {
+    pub path: PathBuf,
+    /// Applied to the whole layer, cameras and lights included.
+    pub transform: Mat4,
+    /// Motion tags by node name; they win over tags in the file.
+    pub tags: BTreeMap<String, Motion>,
+}
+
+/// What to load: the layers, the camera, and the file that describes them (errors about
+/// tags and cameras name it, with `scene[i]` and `camera` keys).
+#[derive(Debug, Clone, Copy)]
+pub struct SceneDesc<'a> {
+    pub file: &'a Path,
+    pub layers: &'a [LayerDesc],
+    pub camera: Option<&'a CameraSpec>,
 }
 
 impl Layer {
@@ -235,14 +295,14 @@ impl Layer {
     /// Resolves every node's motion (module doc) and rejects static prims that move.
     fn resolve_tags(
         &mut self,
-        overrides: &std::collections::BTreeMap<String, Motion>,
-        job: &Job,
+        overrides: &BTreeMap<String, Motion>,
+        desc_file: &Path,
         layer: usize,
     ) -> Result<()> {
         for name in overrides.keys() {
             if !self.nodes.iter().any(|n| &n.name == name) {
                 return Err(Error::input(
-                    &job.path,
+                    desc_file,
                     format!("scene[{layer}].tags.{name}"),
                     format!("no node named \"{name}\" in {}", self.path.display()),
                 ));
@@ -377,49 +437,27 @@ impl Layer {
 }
 
 impl Scene {
-    /// Loads every layer of the job, resolves tags and the camera, and checks the frame
-    /// range against the animation: everything a render needs.
-    pub fn load(job: &Job) -> Result<Scene> {
-        let scene = Scene::load_layers(job)?;
+    /// Loads every layer, resolves tags and the camera: everything a render needs.
+    pub fn load(desc: &SceneDesc) -> Result<Scene> {
+        let scene = Scene::load_layers(desc)?;
         if scene.camera.is_none() {
             return Err(Error::input(
-                &job.path,
+                desc.file,
                 "camera",
                 "the scene has no camera; name one or give one in the job file",
             ));
-        }
-        if let Some((t0, t1)) = scene.time_range() {
-            let half = (0.5 / job.fps) as f32;
-            for (key, f) in [
-                ("frames.start", job.frames.start),
-                ("frames.end", job.frames.end),
-            ] {
-                let t = job.time_of(f);
-                if t < t0 - half || t > t1 + half {
-                    return Err(Error::input(
-                        &job.path,
-                        key,
-                        format!(
-                            "frame {f} (t = {t:.4} s at {} fps, frame_offset {}) is outside the animation, which spans t = {t0:.4}..{t1:.4} s (frames {:.0}..{:.0})",
-                            job.fps,
-                            job.frame_offset,
-                            job.frames_in(t0, t1).0,
-                            job.frames_in(t0, t1).1
-                        ),
-                    ));
-                }
-            }
         }
         Ok(scene)
     }
 
     /// Loads the layers and resolves tags; the camera is resolved where one exists (a camera
-    /// the job names must exist). For `inspect`, which also reads scenes without cameras.
-    pub fn load_layers(job: &Job) -> Result<Scene> {
+    /// the description names must exist). For `inspect`, which also reads scenes without
+    /// cameras.
+    pub fn load_layers(desc: &SceneDesc) -> Result<Scene> {
         let mut layers = Vec::new();
         let mut materials = vec![Material::default()];
         let mut textures = Vec::new();
-        for (li, l) in job.layers.iter().enumerate() {
+        for (li, l) in desc.layers.iter().enumerate() {
             let loaded = gltf::load(
                 &l.path,
                 gltf::Offsets {
@@ -429,13 +467,13 @@ impl Scene {
             )?;
             let mut layer = loaded.layer;
             layer.transform = l.transform;
-            layer.resolve_tags(&l.tags, job, li)?;
+            layer.resolve_tags(&l.tags, desc.file, li)?;
             materials.extend(loaded.materials);
             textures.extend(loaded.textures);
             layers.push(layer);
         }
-        let camera = match &job.camera {
-            Some(CameraFile::Node { node }) => Some(
+        let camera = match desc.camera {
+            Some(CameraSpec::Node(node)) => Some(
                 layers
                     .iter()
                     .enumerate()
@@ -450,13 +488,13 @@ impl Scene {
                     })
                     .ok_or_else(|| {
                         Error::input(
-                            &job.path,
+                            desc.file,
                             "camera.node",
                             format!("no camera node named \"{node}\" in the scene"),
                         )
                     })?,
             ),
-            Some(c) => Some(CameraChoice::Job(c.clone())),
+            Some(CameraSpec::LookAt(l)) => Some(CameraChoice::LookAt(*l)),
             None => layers.iter().enumerate().find_map(|(li, l)| {
                 l.nodes
                     .iter()
@@ -551,19 +589,9 @@ impl Scene {
                 let cam = &l.cameras[l.nodes[*node].camera.expect("camera node")];
                 FrameCamera::from_matrix(world, cam.projection, aspect)
             }
-            CameraChoice::Job(CameraFile::LookAt {
-                position,
-                look_at,
-                up,
-                yfov_deg,
-            }) => FrameCamera::look_at(
-                Vec3::from(*position),
-                Vec3::from(*look_at),
-                Vec3::from(*up),
-                yfov_deg.to_radians(),
-                aspect,
-            ),
-            CameraChoice::Job(CameraFile::Node { .. }) => unreachable!("resolved in Scene::load"),
+            CameraChoice::LookAt(l) => {
+                FrameCamera::look_at(l.position, l.look_at, l.up, l.yfov, aspect)
+            }
         }
     }
 
@@ -573,14 +601,39 @@ impl Scene {
         StaticSet::new(self.geometry(0.0, Motion::Static))
     }
 
-    /// The render-ready scene at time `t`, sharing the static set.
-    pub fn evaluate(&self, t: f32, aspect: f32, statics: &StaticSet) -> FrameScene {
-        FrameScene::new(
+    /// The render-ready scene at time `t`, sharing the static set: the one place a frame's
+    /// scene is built. Also returns the seconds spent evaluating the dynamic prims and
+    /// building the rest (the dynamic BVH above all).
+    pub fn evaluate(
+        &self,
+        t: f32,
+        aspect: f32,
+        statics: &StaticSet,
+    ) -> (FrameScene, EvaluateTimings) {
+        let start = Instant::now();
+        let dynamic = self.geometry(t, Motion::Dynamic);
+        let animation = start.elapsed().as_secs_f64();
+        let start = Instant::now();
+        let frame = FrameScene::new(
             statics,
-            self.geometry(t, Motion::Dynamic),
+            dynamic,
             self.lights(t),
             self.camera_at(t, aspect),
             &self.materials,
-        )
+        );
+        let timings = EvaluateTimings {
+            animation,
+            dynamic_bvh: start.elapsed().as_secs_f64(),
+        };
+        (frame, timings)
     }
+}
+
+/// Seconds [`Scene::evaluate`] spent.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct EvaluateTimings {
+    /// Animation, skinning and morphing of the dynamic prims.
+    pub animation: f64,
+    /// Lights, camera, emitters and the dynamic BVH.
+    pub dynamic_bvh: f64,
 }

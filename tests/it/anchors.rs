@@ -4,24 +4,24 @@
 use super::common::*;
 use super::scenes::base64_encode;
 use anchorage::compare::{Aov, rms_error_pct};
+use anchorage::integrator::FrameImage;
 use anchorage::pipeline;
-use anchorage::render::FrameImage;
-use anchorage::scene::Scene;
+use anchorage::session::FrameState;
 
 /// Renders frames `frames` of `job` in order with one session, as `render` does.
 pub(super) fn render_sequence(
     job: &anchorage::job::Job,
     frames: impl IntoIterator<Item = i32>,
-) -> Vec<(FrameImage, pipeline::FrameStats)> {
-    let scene = Scene::load(job).unwrap();
-    let statics = scene.statics();
-    let mut session = pipeline::new_session(job).unwrap();
+) -> Vec<(FrameImage, anchorage::stats::FrameStats)> {
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(job, &scene).unwrap();
+    let mut state = FrameState::default();
     frames
         .into_iter()
         .map(|f| {
             let mut stats = pipeline::new_stats(job, f);
             let img =
-                pipeline::render_frame(job, &scene, &statics, &mut session, f, &mut stats).unwrap();
+                pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut stats).unwrap();
             (img, stats)
         })
         .collect()
@@ -150,7 +150,7 @@ fn an_occluder_that_comes_and_goes() {
     // Every frame in order, as a render does: records and anchors persist from frame to frame.
     let all: Vec<i32> = (0..=24).collect();
     let pick =
-        |v: Vec<(FrameImage, pipeline::FrameStats)>| -> Vec<(FrameImage, pipeline::FrameStats)> {
+        |v: Vec<(FrameImage, anchorage::stats::FrameStats)>| -> Vec<(FrameImage, anchorage::stats::FrameStats)> {
             v.into_iter()
                 .filter(|(_, s)| [0, 4, 8, 10, 12, 16, 20, 24].contains(&s.frame))
                 .collect()
@@ -278,38 +278,31 @@ fn d_max_absolute_and_importance_density() {
 /// what a fresh estimate from the current frame's photons gives (to RGBE's precision).
 #[test]
 fn kept_anchor_estimates_match_fresh_ones() {
-    use anchorage::gi::photons::PhotonMap;
-    use anchorage::render::Materials;
-    use anchorage::scene::{FrameScene, Motion};
+    use anchorage::interaction::Materials;
+    use anchorage::photon::PhotonMap;
     let job = example("anchors", "");
-    let scene = Scene::load(&job).unwrap();
-    let statics = scene.statics();
-    let mut session = pipeline::new_session(&job).unwrap();
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let mut state = FrameState::default();
     let mut kept = 0;
     let last = 13;
     for f in 10..=last {
         let mut stats = pipeline::new_stats(&job, f);
-        pipeline::render_frame(&job, &scene, &statics, &mut session, f, &mut stats).unwrap();
+        pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut stats).unwrap();
         if f > 10 {
             kept += stats.counts.anchors - stats.counts.anchors_reestimated;
         }
     }
     assert!(kept > 1000, "{kept} estimates kept");
     let t = job.time_of(last);
-    let fs = FrameScene::new(
-        &statics,
-        scene.geometry(t, Motion::Dynamic),
-        scene.lights(t),
-        scene.camera_at(t, job.width as f32 / job.height as f32),
-        &scene.materials,
-    );
+    let (fs, _) = scene.evaluate(t, job.width as f32 / job.height as f32, &resources.statics);
     let m = Materials {
         materials: &scene.materials,
         textures: &scene.textures,
     };
     let params = job.method.params();
     let pm = PhotonMap::trace(&fs, m, params.photons, job.seed, params.max_bounces);
-    let set = session.anchors.as_ref().unwrap();
+    let set = state.anchors.as_ref().unwrap();
     let k = params.anchors.anchor_k(params.k as usize);
     let mut checked = 0;
     for a in set.anchors.iter().filter(|a| a.is_live()) {

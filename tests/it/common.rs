@@ -3,10 +3,11 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use anchorage::integrator::FrameImage;
 use anchorage::job::{Job, JobFile, Overrides};
-use anchorage::pipeline::{self, FrameStats};
-use anchorage::render::FrameImage;
-use anchorage::scene::Scene;
+use anchorage::pipeline;
+use anchorage::session::FrameState;
+use anchorage::stats::FrameStats;
 
 pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -40,14 +41,14 @@ pub fn job_from_json(path: &Path, json: &str) -> anchorage::Result<Job> {
 
 /// Renders one frame in memory.
 pub fn render(job: &Job, frame: i32) -> FrameImage {
-    let scene = Scene::load(job).expect("scene loads");
-    let statics = scene.statics();
+    let scene = job.load_scene().expect("scene loads");
+    let resources = pipeline::new_resources(job, &scene).expect("resources");
     let mut stats = blank_stats();
     pipeline::render_frame(
         job,
         &scene,
-        &statics,
-        &mut Default::default(),
+        &resources,
+        &mut FrameState::default(),
         frame,
         &mut stats,
     )
@@ -58,7 +59,7 @@ fn blank_stats() -> FrameStats {
     FrameStats {
         frame: 0,
         time: 0.0,
-        method: "direct",
+        method: "direct".into(),
         visibility: None,
         resolution: [0, 0],
         samples_per_pixel: 0,

@@ -3,9 +3,8 @@
 
 use super::common::*;
 use super::scenes::base64_encode;
-use anchorage::gi::photons::PhotonMap;
-use anchorage::render::Materials;
-use anchorage::scene::Scene;
+use anchorage::interaction::Materials;
+use anchorage::photon::PhotonMap;
 
 /// A closed cube room, side 2·`half`, every wall emitting radiance `le` inward, albedo `rho`.
 /// In such an enclosure the radiance is L = Le / (1 − ρ) everywhere, so at a wall
@@ -76,7 +75,7 @@ fn furnace(
     .unwrap()
 }
 
-fn mean(img: &anchorage::render::FrameImage, f: impl Fn(usize) -> f32) -> f64 {
+fn mean(img: &anchorage::integrator::FrameImage, f: impl Fn(usize) -> f32) -> f64 {
     (0..img.beauty.len()).map(|i| f(i) as f64).sum::<f64>() / img.beauty.len() as f64
 }
 
@@ -127,9 +126,9 @@ fn photon_power_is_conserved() {
     // edges loses photons out of the closed room (regression: 3 % were lost at 1e-3).
     for half in [1.0f32, 1e-3, 1e4] {
         let job = furnace(dir.path(), rho, 1.0, half, "brute-force", "");
-        let scene = Scene::load(&job).unwrap();
+        let scene = job.load_scene().unwrap();
         let statics = scene.statics();
-        let frame = scene.evaluate(0.0, 1.0, &statics);
+        let (frame, _) = scene.evaluate(0.0, 1.0, &statics);
         let m = Materials {
             materials: &scene.materials,
             textures: &scene.textures,

@@ -3,11 +3,12 @@
 //! `.ci/run` does, with Mesa's software Vulkan driver): then they fail.
 
 use super::anchors::{example, render_sequence};
-use anchorage::gi::gpu::adapter_for_tests;
-use anchorage::gi::visibility::{CpuVisibility, DynamicSet, StrataBits, Visibility};
+use anchorage::geom::Motion;
 use anchorage::job::VisibilityChoice;
 use anchorage::pipeline;
-use anchorage::scene::{Motion, Scene};
+use anchorage::session::FrameState;
+use anchorage::visibility::gpu::adapter_for_tests;
+use anchorage::visibility::{CpuVisibility, DynamicSet, StrataBits, Visibility};
 
 /// The records of the example after a few frames, against the sliding cube at several
 /// times: the GPU flags every stratum the CPU flags, and at most 1 % more.
@@ -17,14 +18,14 @@ fn gpu_and_cpu_flag_the_same_strata_on_the_example() {
         return;
     };
     let job = example("anchors", r#","strata":[12,36]"#);
-    let scene = Scene::load(&job).unwrap();
-    let statics = scene.statics();
-    let mut session = pipeline::new_session(&job).unwrap();
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let mut state = FrameState::default();
     for f in 0..3 {
         let mut stats = pipeline::new_stats(&job, f);
-        pipeline::render_frame(&job, &scene, &statics, &mut session, f, &mut stats).unwrap();
+        pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut stats).unwrap();
     }
-    let records: Vec<_> = session
+    let records: Vec<_> = state
         .cache
         .records
         .iter()

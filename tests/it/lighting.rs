@@ -2,7 +2,7 @@
 
 use super::common::*;
 use super::scenes::base64_encode;
-use anchorage::render::FrameImage;
+use anchorage::integrator::FrameImage;
 use glam::Vec3;
 
 const ALBEDO: f32 = 0.5;
@@ -60,7 +60,7 @@ fn check_against(
     expect: impl Fn(Vec3) -> f32,
     tol: f32,
 ) {
-    let scene = anchorage::scene::Scene::load(job).unwrap();
+    let scene = job.load_scene().unwrap();
     let cam = scene.camera_at(0.0, 1.0);
     let mut worst = 0.0f32;
     for y in 0..img.height {

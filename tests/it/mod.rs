@@ -6,4 +6,5 @@ mod gpu;
 mod lighting;
 mod python;
 mod scenes;
+mod schemas;
 mod tags;

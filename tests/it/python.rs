@@ -7,7 +7,7 @@ use std::process::Command;
 use glam::Mat4;
 
 use super::common::*;
-use anchorage::scene::{Motion, Scene};
+use anchorage::geom::Motion;
 
 #[test]
 fn exr_channels_and_values_read_back_with_openexr() {
@@ -112,7 +112,7 @@ fn usd_stage_through_usd2gltf_matches_usd_transforms_and_renders() {
     )
     .unwrap();
     let job = anchorage::job::Job::load(&job_path, &Default::default()).unwrap();
-    let scene = Scene::load(&job).unwrap();
+    let scene = job.load_scene().unwrap();
     let layer = &scene.layers[0];
     let node = |n: &str| {
         layer

@@ -5,7 +5,8 @@
 use glam::{Mat4, Quat, Vec3};
 
 use super::common::*;
-use anchorage::scene::{Motion, Scene};
+use anchorage::geom::Motion;
+use anchorage::scene::Scene;
 
 const SCENES: &[&str] = &[
     "AnimatedCube/AnimatedCube.gltf",
@@ -39,7 +40,9 @@ fn scene_job(rel: &str) -> anchorage::job::Job {
 fn every_shared_scene_loads_with_the_counts_of_its_file() {
     for rel in SCENES {
         let job = scene_job(rel);
-        let scene = Scene::load_layers(&job).unwrap_or_else(|e| panic!("{rel}: {e}"));
+        let scene = job
+            .load_scene_layers()
+            .unwrap_or_else(|e| panic!("{rel}: {e}"));
         let raw = RawGltf::open(&shared_scene(rel));
         let layer = &scene.layers[0];
         assert_eq!(
@@ -63,7 +66,7 @@ fn every_shared_scene_loads_with_the_counts_of_its_file() {
 #[test]
 fn sponza_has_its_187k_triangles() {
     let job = scene_job("sponza_lod4_trimesh/sponza_s_lod4.glb");
-    let scene = Scene::load_layers(&job).unwrap();
+    let scene = job.load_scene_layers().unwrap();
     let n = scene.geometry(0.0, Motion::Static).len() + scene.layers[0].degenerate_triangles;
     assert_eq!(n, 187_364);
 }
@@ -82,7 +85,7 @@ fn local(scene: &Scene, node: usize, t: f32) -> Mat4 {
 #[test]
 fn box_animated_matches_its_keyframes() {
     let rel = "BoxAnimated/BoxAnimated.gltf";
-    let scene = Scene::load_layers(&scene_job(rel)).unwrap();
+    let scene = scene_job(rel).load_scene_layers().unwrap();
     let raw = RawGltf::open(&shared_scene(rel));
     let times = raw.floats(8);
     let keys = raw.floats(9);
@@ -115,7 +118,7 @@ fn box_animated_matches_its_keyframes() {
 #[test]
 fn cubic_spline_translation_matches_hand_computed_hermite() {
     let rel = "blenderio_03_all_animations/03_all_animations.gltf";
-    let scene = Scene::load_layers(&scene_job(rel)).unwrap();
+    let scene = scene_job(rel).load_scene_layers().unwrap();
     let raw = RawGltf::open(&shared_scene(rel));
     let anim = raw.json["animations"]
         .as_array()
@@ -155,7 +158,7 @@ fn cubic_spline_translation_matches_hand_computed_hermite() {
 #[test]
 fn skinned_mesh_deforms_over_time() {
     let rel = "CesiumMan/CesiumMan.gltf";
-    let scene = Scene::load_layers(&scene_job(rel)).unwrap();
+    let scene = scene_job(rel).load_scene_layers().unwrap();
     let (t0, t1) = scene.time_range().unwrap();
     let a = scene.geometry(t0, Motion::Dynamic);
     let b = scene.geometry(0.5 * (t0 + t1), Motion::Dynamic);
@@ -212,7 +215,7 @@ fn morph_target_weights_move_vertices() {
     );
     std::fs::write(dir.path().join("m.gltf"), gltf).unwrap();
     let job = job_from_json(&dir.path().join("j.json"), r#"{"scene":[{"path":"m.gltf"}],"camera":{"position":[0,0,5],"look_at":[0,0,0],"yfov_deg":40}}"#).unwrap();
-    let scene = Scene::load_layers(&job).unwrap();
+    let scene = job.load_scene_layers().unwrap();
     assert_eq!(scene.layers[0].nodes[0].motion, Motion::Dynamic);
     for (t, z) in [(0.0, 0.0), (0.25, 0.5), (1.0, 2.0)] {
         let g = scene.geometry(t, Motion::Dynamic);
@@ -252,8 +255,8 @@ fn layer_transform_applies_to_prims() {
         r#"{"scene":[{"path":"BoxAnimated.gltf","transform":{"translation":[10,0,0],"scale":2}}],"camera":{"position":[0,0,5],"look_at":[0,0,0],"yfov_deg":40}}"#,
     )
     .unwrap();
-    let moved = Scene::load_layers(&job).unwrap();
-    let plain = Scene::load_layers(&scene_job(rel)).unwrap();
+    let moved = job.load_scene_layers().unwrap();
+    let plain = scene_job(rel).load_scene_layers().unwrap();
     let a = plain.layers[0].world_matrices(1.0)[0];
     let b = moved.layers[0].world_matrices(1.0)[0];
     let expect = Mat4::from_scale_rotation_translation(

@@ -3,7 +3,8 @@
 
 use super::common::*;
 use super::scenes::base64_encode;
-use anchorage::scene::{Motion, Scene, TagSource};
+use anchorage::geom::Motion;
+use anchorage::scene::{Scene, TagSource};
 
 /// A scene of four nodes: parent(0) → child(1) → grandchild(2), and a separate node 3.
 /// Every node instances one triangle. `extras` are JSON per node; `animated` is the node an
@@ -44,7 +45,7 @@ fn scene(extras: [&str; 4], animated: usize, tags: &str) -> anchorage::Result<Sc
             r#"{{"scene":[{{"path":"s.gltf","tags":{tags}}}],"camera":{{"position":[0,0,5],"look_at":[0,0,0],"yfov_deg":40}}}}"#
         ),
     )?;
-    Scene::load_layers(&job)
+    job.load_scene_layers()
 }
 
 fn motions(s: &Scene) -> Vec<Motion> {
@@ -188,7 +189,7 @@ fn bad_motion_values_and_unknown_override_nodes_are_errors() {
 #[test]
 fn example_scene_tags() {
     let job = anchorage::job::Job::load(&example_job(), &Default::default()).unwrap();
-    let s = Scene::load(&job).unwrap();
+    let s = job.load_scene().unwrap();
     let l = &s.layers[0];
     let by_name = |n: &str| l.nodes.iter().find(|x| x.name == n).unwrap();
     assert_eq!(by_name("walls").motion, Motion::Static);

@@ -3,7 +3,7 @@
 //! on the GPU and maps the map's pixels to strata; here the "map" is the stratum grid itself
 //! and coverage is decided per (record, triangle) by one conservative rule, [`cover`], that
 //! both implementations of [`Visibility`] run: [`CpuVisibility`] in Rust and
-//! [`super::gpu::GpuVisibility`] in WGSL (`shaders/visibility.wgsl`, which mirrors [`cover`]
+//! [`gpu::GpuVisibility`] in WGSL (`shaders/visibility.wgsl`, which mirrors [`cover`]
 //! line by line).
 //!
 //! The rule. From the record at x, a triangle's vertices project to unit vectors u₀, u₁, u₂;
@@ -36,10 +36,53 @@
 //! bucketing on glossy surfaces (§5.1) would keep the nearest distance per cell instead of
 //! a bit.
 
-use glam::Vec3;
+pub mod cpu;
+pub mod gpu;
 
-use super::photons::basis;
-use crate::scene::Geometry;
+use glam::Vec3;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::geom::{Geometry, basis};
+pub use cpu::CpuVisibility;
+
+/// Why visibility detection could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// No GPU adapter could be opened: the reason, for the log line or the error.
+    #[error("{0}")]
+    NoAdapter(String),
+    /// The adapter opened, but its device could not be created.
+    #[error("{adapter}: cannot open the device: {message}")]
+    Device { adapter: String, message: String },
+    /// The frame's records or dynamic triangles need a buffer larger than the adapter allows.
+    #[error(
+        "{records} records and {triangles} dynamic triangles exceed the adapter's storage buffer size ({limit} bytes)"
+    )]
+    TooLarge {
+        records: usize,
+        triangles: usize,
+        limit: u64,
+    },
+    /// Running the shader or reading its flags back failed.
+    #[error("{adapter}: {message}")]
+    Gpu { adapter: String, message: String },
+}
+
+/// Where visibility detection (§3.2) runs.
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum VisibilityChoice {
+    /// A hardware GPU adapter when there is one, else the CPU (one log line says why).
+    #[default]
+    Auto,
+    /// Any GPU adapter, software ones included; an error when there is none.
+    Gpu,
+    /// The CPU implementation.
+    Cpu,
+}
 
 /// The slack of [`CpuVisibility`] (module doc).
 pub const CPU_SLACK: f32 = 1e-6;
@@ -139,7 +182,7 @@ pub trait Visibility: Send + Sync {
         records: &[(Vec3, Vec3)],
         strata: [u32; 2],
         set: &DynamicSet,
-    ) -> Result<Vec<StrataBits>, String>;
+    ) -> Result<Vec<StrataBits>, Error>;
 }
 
 /// θ limits of row j of M cosine-weighted strata: sin²θ from j/M to (j+1)/M.
@@ -278,14 +321,34 @@ fn overlaps(cap: &Cap, row: &Row, c: Vec3, slack: f32) -> bool {
     c.dot(cap.axis) >= cos_sum(cap.cos, cap.sin, row.cos_beta, row.sin_beta) - slack
 }
 
-/// The cap of a prim's bounding sphere seen from `f`: `Ok(None)` when `f.x` lies inside the
-/// sphere (no cap bounds it), `Err(())` when the sphere is wholly below the horizon.
-#[allow(clippy::result_unit_err)]
-pub fn sphere_cap(f: &RecordFrame, prim: Bound, slack: f32) -> Result<Option<SphereCap>, ()> {
+/// What a prim's bounding sphere looks like from a record ([`sphere_cap`]).
+#[derive(Debug, Clone, Copy)]
+pub enum PrimCap {
+    /// Wholly below the record's horizon: the prim cannot be seen.
+    Below,
+    /// The record lies inside the sphere: no cap bounds the prim.
+    Around,
+    /// The cap of directions the sphere spans.
+    Cap(SphereCap),
+}
+
+impl PrimCap {
+    /// The cap [`cover`] takes, or `None` when the prim cannot be seen at all.
+    pub fn visible(self) -> Option<Option<SphereCap>> {
+        match self {
+            PrimCap::Below => None,
+            PrimCap::Around => Some(None),
+            PrimCap::Cap(c) => Some(Some(c)),
+        }
+    }
+}
+
+/// The cap of a prim's bounding sphere seen from `f`.
+pub fn sphere_cap(f: &RecordFrame, prim: Bound, slack: f32) -> PrimCap {
     let v = prim.centre - f.x;
     let d = v.length();
     if d <= prim.radius * (1.0 + slack) {
-        return Ok(None);
+        return PrimCap::Around;
     }
     let sin = prim.radius / d;
     let cap = Cap {
@@ -294,9 +357,9 @@ pub fn sphere_cap(f: &RecordFrame, prim: Bound, slack: f32) -> Result<Option<Sph
         sin,
     };
     if cap.axis.z < -cap.sin - slack {
-        return Err(());
+        return PrimCap::Below;
     }
-    Ok(Some(SphereCap(cap)))
+    PrimCap::Cap(SphereCap(cap))
 }
 
 /// A triangle projected onto the unit sphere around a record (local frame), for the exact
@@ -465,49 +528,13 @@ pub fn cover(
     }
 }
 
-/// The CPU implementation: [`cover`] per record and triangle, records in parallel.
-pub struct CpuVisibility;
-
-impl Visibility for CpuVisibility {
-    fn name(&self) -> String {
-        "cpu".into()
-    }
-
-    fn flag(
-        &self,
-        records: &[(Vec3, Vec3)],
-        strata: [u32; 2],
-        set: &DynamicSet,
-    ) -> Result<Vec<StrataBits>, String> {
-        use rayon::prelude::*;
-        let h = Hemisphere::new(strata);
-        Ok(records
-            .par_iter()
-            .map(|&(x, normal)| {
-                let mut bits = StrataBits::new(h.len());
-                let f = RecordFrame::new(x, normal);
-                for (prim, range) in set.prims.iter().zip(&set.ranges) {
-                    let Ok(sphere) = sphere_cap(&f, *prim, CPU_SLACK) else {
-                        continue;
-                    };
-                    for tri in &set.triangles[range.clone()] {
-                        cover(&h, &f, sphere, tri, CPU_SLACK, |c| bits.set(c));
-                    }
-                }
-                bits
-            })
-            .collect())
-    }
-}
-
 /// Random dynamic scenes and the conservativeness check, shared by both implementations'
 /// tests.
 #[cfg(test)]
 pub(crate) mod testing {
     use super::*;
     use crate::accel::Accel;
-    use crate::scene::TriangleShading;
-    use crate::scene::frame::triangle;
+    use crate::geom::{TriangleShading, triangle};
     use glam::Vec2;
 
     fn r(seed: u32, i: u32, d: u32) -> f32 {
@@ -645,9 +672,9 @@ mod tests {
                 let mut bits = StrataBits::new(h.len());
                 for &prim in &set.prims {
                     match sphere_cap(&f, prim, CPU_SLACK) {
-                        Err(()) => {}
-                        Ok(None) => (0..h.len()).for_each(|c| bits.set(c)),
-                        Ok(Some(cap)) => (0..h.len()).for_each(|c| {
+                        PrimCap::Below => {}
+                        PrimCap::Around => (0..h.len()).for_each(|c| bits.set(c)),
+                        PrimCap::Cap(cap) => (0..h.len()).for_each(|c| {
                             let j = c / h.n as usize;
                             if (0..4).any(|i| {
                                 let half = &h.half_rows[2 * j + i / 2];

@@ -11,20 +11,25 @@
 //! The kd-tree is kiddo's immutable tree: a maintained crate doing exactly the k-nearest
 //! query the estimate needs.
 
+pub mod precomputed;
+
 use std::f32::consts::PI;
 use std::num::NonZero;
 
 use glam::Vec3;
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use serde::{Deserialize, Serialize};
 
 use crate::accel::offset_of;
-use crate::render::{Materials, SurfacePoint};
-use crate::sampling::hash;
+use crate::color::luminance;
+use crate::geom::{basis, cosine_direction, uniform_sphere};
+use crate::interaction::{Materials, SurfacePoint};
+use crate::sampling::Sampler;
 use crate::scene::{FrameScene, LightKind};
 
 /// One stored photon.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Photon {
     pub position: Vec3,
     /// Normal of the surface it landed on, on the side it arrived from.
@@ -34,7 +39,7 @@ pub struct Photon {
 }
 
 /// The photons of a map, path by path, kept to tell the next frame's changes.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct PhotonPaths {
     pub photons: Vec<Photon>,
     pub path_start: Vec<u32>,
@@ -59,52 +64,22 @@ enum Source {
     Emitter(usize),
 }
 
-/// A QMC sample stream for photon `i`: dimension `d` of the Owen-scrambled Sobol sequence.
-struct PhotonSampler {
-    seed: u32,
+/// Photon `index`'s samples: dimension `d` of the photons' sequence ([`Sampler::photons`]).
+/// Dimensions: [`DIM_LIGHT`] picks the light, four from [`DIM_EMIT`] place the photon on it,
+/// and each bounce takes three from [`DIM_BOUNCES`] (roulette, then the direction).
+struct PhotonSamples {
+    sampler: Sampler,
     index: u32,
 }
 
-impl PhotonSampler {
+const DIM_LIGHT: u32 = 0;
+const DIM_EMIT: u32 = 1;
+const DIM_BOUNCES: u32 = 5;
+
+impl PhotonSamples {
     fn get(&self, d: u32) -> f32 {
-        let set = d / sobol_burley::NUM_DIMENSIONS;
-        let seed = if set == 0 {
-            self.seed
-        } else {
-            hash(&[self.seed, set])
-        };
-        sobol_burley::sample(self.index, d % sobol_burley::NUM_DIMENSIONS, seed)
+        self.sampler.get(self.index, d)
     }
-}
-
-fn luminance(c: Vec3) -> f32 {
-    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
-}
-
-/// An orthonormal basis around `n` (Duff et al. 2017).
-pub fn basis(n: Vec3) -> (Vec3, Vec3) {
-    let s = 1.0f32.copysign(n.z);
-    let a = -1.0 / (s + n.z);
-    let b = n.x * n.y * a;
-    (
-        Vec3::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x),
-        Vec3::new(b, s + n.y * n.y * a, -n.y),
-    )
-}
-
-/// Cosine-weighted direction around `n` from two uniform numbers.
-pub fn cosine_direction(n: Vec3, u1: f32, u2: f32) -> Vec3 {
-    let (t, b) = basis(n);
-    let r = u1.sqrt();
-    let phi = 2.0 * PI * u2;
-    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
-}
-
-fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
-    let z = 1.0 - 2.0 * u1;
-    let r = (1.0 - z * z).max(0.0).sqrt();
-    let phi = 2.0 * PI * u2;
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
 /// Centre and radius of a sphere bounding all geometry.
@@ -176,7 +151,7 @@ impl PhotonMap {
             acc += w;
             cdf.push((acc / total) as f32);
         }
-        let seed = hash(&[seed, 0x5eed_0001]);
+        let sampler = Sampler::photons(seed);
         use rayon::prelude::*;
         let chunks: Vec<(Vec<Photon>, Vec<u32>)> = (0..count.div_ceil(4096))
             .into_par_iter()
@@ -187,9 +162,9 @@ impl PhotonMap {
                     if i > c * 4096 {
                         ends.push(out.len() as u32);
                     }
-                    let s = PhotonSampler { seed, index: i };
+                    let s = PhotonSamples { sampler, index: i };
                     let k = cdf
-                        .partition_point(|&x| x <= s.get(0))
+                        .partition_point(|&x| x <= s.get(DIM_LIGHT))
                         .min(sources.len() - 1);
                     let p_pick = (weights[k] / total) as f32;
                     let Some((o, dir, flux)) = emit(frame, &sources[k], &s, centre, radius) else {
@@ -307,7 +282,7 @@ impl PhotonMap {
 fn emit(
     frame: &FrameScene,
     source: &Source,
-    s: &PhotonSampler,
+    s: &PhotonSamples,
     centre: Vec3,
     radius: f32,
 ) -> Option<(Vec3, Vec3, Vec3)> {
@@ -317,15 +292,15 @@ fn emit(
             match l.kind {
                 LightKind::Point => Some((
                     l.position,
-                    uniform_sphere(s.get(3), s.get(4)),
+                    uniform_sphere(s.get(DIM_EMIT + 2), s.get(DIM_EMIT + 3)),
                     4.0 * PI * l.intensity,
                 )),
                 LightKind::Spot { inner, outer } => {
                     // Uniform in the outer cone, weighted by the smooth falloff.
                     let (co, ci) = (outer.cos(), inner.cos());
-                    let z = 1.0 - s.get(3) * (1.0 - co);
+                    let z = 1.0 - s.get(DIM_EMIT + 2) * (1.0 - co);
                     let r = (1.0 - z * z).max(0.0).sqrt();
-                    let phi = 2.0 * PI * s.get(4);
+                    let phi = 2.0 * PI * s.get(DIM_EMIT + 3);
                     let (t, b) = basis(l.direction);
                     let d =
                         (t * (r * phi.cos()) + b * (r * phi.sin()) + l.direction * z).normalize();
@@ -334,8 +309,8 @@ fn emit(
                 }
                 LightKind::Directional => {
                     let (t, b) = basis(l.direction);
-                    let r = radius * s.get(1).sqrt();
-                    let phi = 2.0 * PI * s.get(2);
+                    let r = radius * s.get(DIM_EMIT).sqrt();
+                    let phi = 2.0 * PI * s.get(DIM_EMIT + 1);
                     let o = centre - l.direction * (2.0 * radius)
                         + t * (r * phi.cos())
                         + b * (r * phi.sin());
@@ -347,12 +322,12 @@ fn emit(
             let e = &frame.emitters.list[i];
             let g = frame.geometry(e.motion);
             let tri = &g.triangles[e.triangle as usize];
-            let su = s.get(1).sqrt();
-            let u2 = s.get(2);
+            let su = s.get(DIM_EMIT).sqrt();
+            let u2 = s.get(DIM_EMIT + 1);
             let y =
                 Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
             let mut n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
-            let mut u3 = s.get(3);
+            let mut u3 = s.get(DIM_EMIT + 2);
             let mut sides = 1.0;
             if e.double_sided {
                 sides = 2.0;
@@ -363,7 +338,7 @@ fn emit(
                     u3 = 2.0 * u3 - 1.0;
                 }
             }
-            let d = cosine_direction(n, u3.min(0.999_999_9), s.get(4));
+            let d = cosine_direction(n, u3.min(0.999_999_9), s.get(DIM_EMIT + 3));
             Some((y + n * offset_of(tri), d, PI * e.radiance * e.area * sides))
         }
     }
@@ -377,7 +352,7 @@ fn trace_path(
     mut o: Vec3,
     mut dir: Vec3,
     mut flux: Vec3,
-    s: &PhotonSampler,
+    s: &PhotonSamples,
     max_bounces: u32,
     out: &mut Vec<Photon>,
 ) {
@@ -400,7 +375,7 @@ fn trace_path(
         // Russian roulette by albedo (Jensen §5.3): survive with p = mean albedo.
         let albedo = sp.albedo(m);
         let p = ((albedo.x + albedo.y + albedo.z) / 3.0).clamp(0.0, 1.0);
-        let d = 5 + 3 * bounce;
+        let d = DIM_BOUNCES + 3 * bounce;
         if s.get(d) >= p || p <= 0.0 {
             return;
         }

@@ -20,8 +20,9 @@ use std::borrow::Cow;
 use glam::Vec3;
 use wgpu::util::DeviceExt;
 
-use super::visibility::{
-    DynamicSet, GPU_SLACK, Hemisphere, MIN_CAP_COS, RecordFrame, StrataBits, Visibility,
+use super::{
+    CpuVisibility, DynamicSet, Error, GPU_SLACK, Hemisphere, MIN_CAP_COS, RecordFrame, StrataBits,
+    Visibility, VisibilityChoice,
 };
 
 /// The shader's uniform block.
@@ -61,7 +62,7 @@ pub fn is_hardware(info: &wgpu::AdapterInfo) -> bool {
 
 impl GpuVisibility {
     /// Opens the best adapter: discrete, then integrated, then virtual, then software.
-    pub fn new() -> Result<Self, String> {
+    pub fn new() -> Result<Self, Error> {
         let backends = wgpu::Backends::from_env()
             .unwrap_or(wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12);
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
@@ -79,10 +80,10 @@ impl GpuVisibility {
         };
         adapters.sort_by_key(|a| rank(a.get_info().device_type));
         let Some(adapter) = adapters.into_iter().next() else {
-            return Err(format!(
+            return Err(Error::NoAdapter(format!(
                 "no Vulkan, Metal or DX12 adapter found among {backends:?} (OpenGL is not \
                  supported; on Debian, mesa-vulkan-drivers provides a software Vulkan adapter)"
-            ));
+            )));
         };
         let info = adapter.get_info();
         let limits = adapter.limits();
@@ -91,7 +92,10 @@ impl GpuVisibility {
             required_limits: limits.clone(),
             ..Default::default()
         }))
-        .map_err(|e| format!("{}: cannot open the device: {e}", info.name))?;
+        .map_err(|e| Error::Device {
+            adapter: info.name.clone(),
+            message: e.to_string(),
+        })?;
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("visibility.wgsl"),
             source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(include_str!(
@@ -148,6 +152,14 @@ impl GpuVisibility {
         })
     }
 
+    /// A failure while running on this adapter.
+    fn failed(&self, e: impl std::fmt::Display) -> Error {
+        Error::Gpu {
+            adapter: self.info.name.clone(),
+            message: e.to_string(),
+        }
+    }
+
     pub fn adapter(&self) -> &wgpu::AdapterInfo {
         &self.info
     }
@@ -175,7 +187,7 @@ impl Visibility for GpuVisibility {
         records: &[(Vec3, Vec3)],
         strata: [u32; 2],
         set: &DynamicSet,
-    ) -> Result<Vec<StrataBits>, String> {
+    ) -> Result<Vec<StrataBits>, Error> {
         let h = Hemisphere::new(strata);
         let cells = h.len();
         if records.is_empty() || set.is_empty() {
@@ -216,13 +228,11 @@ impl Visibility for GpuVisibility {
             .max()
             .unwrap_or(0) as u64;
         if largest > self.max_binding {
-            return Err(format!(
-                "{} records and {} dynamic triangles exceed the adapter's storage buffer size \
-                 ({} bytes)",
-                records.len(),
-                set.triangles.len(),
-                self.max_binding
-            ));
+            return Err(Error::TooLarge {
+                records: records.len(),
+                triangles: set.triangles.len(),
+                limit: self.max_binding,
+            });
         }
         let read = wgpu::BufferUsages::STORAGE;
         let b_records = self.buffer("records", bytemuck::cast_slice(&rec_data), read);
@@ -310,13 +320,13 @@ impl Visibility for GpuVisibility {
             .map_async(wgpu::MapMode::Read, move |r| drop(tx.send(r)));
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| format!("{}: {e}", self.info.name))?;
+            .map_err(|e| self.failed(e))?;
         rx.recv()
-            .map_err(|e| e.to_string())?
-            .map_err(|e| format!("{}: reading flags back: {e}", self.info.name))?;
+            .map_err(|e| self.failed(e))?
+            .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
         let view = b_read
             .get_mapped_range(..)
-            .map_err(|e| format!("{}: reading flags back: {e}", self.info.name))?;
+            .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
         let flags: &[u32] = bytemuck::cast_slice(&view);
         let bits = flags
             .chunks(words)
@@ -334,27 +344,26 @@ impl Visibility for GpuVisibility {
     }
 }
 
-/// The visibility implementation for `choice`: `None` for the CPU. `auto` takes a hardware
+/// The visibility implementation for `choice`. `auto` takes a hardware
 /// adapter and otherwise falls back to the CPU with one line on stderr saying why; `gpu`
 /// takes any adapter, software ones included, and fails when there is none.
-pub fn choose(choice: crate::job::VisibilityChoice) -> Result<Option<Box<dyn Visibility>>, String> {
-    use crate::job::VisibilityChoice;
+pub fn choose(choice: VisibilityChoice) -> Result<Box<dyn Visibility>, Error> {
     match choice {
-        VisibilityChoice::Cpu => Ok(None),
-        VisibilityChoice::Gpu => Ok(Some(Box::new(GpuVisibility::new()?))),
+        VisibilityChoice::Cpu => Ok(Box::new(CpuVisibility)),
+        VisibilityChoice::Gpu => Ok(Box::new(GpuVisibility::new()?)),
         VisibilityChoice::Auto => match GpuVisibility::new() {
-            Ok(g) if is_hardware(g.adapter()) => Ok(Some(Box::new(g))),
+            Ok(g) if is_hardware(g.adapter()) => Ok(Box::new(g)),
             Ok(g) => {
                 log_once(&format!(
                     "the only adapter, {}, is a software one and slower than the CPU \
                      implementation (--visibility gpu uses it)",
                     g.adapter().name
                 ));
-                Ok(None)
+                Ok(Box::new(CpuVisibility))
             }
             Err(e) => {
-                log_once(&e);
-                Ok(None)
+                log_once(&e.to_string());
+                Ok(Box::new(CpuVisibility))
             }
         },
     }
@@ -384,8 +393,8 @@ pub fn adapter_for_tests() -> Option<GpuVisibility> {
 
 #[cfg(test)]
 mod tests {
-    use super::super::visibility::CpuVisibility;
-    use super::super::visibility::testing::{assert_conservative, random_scene};
+    use super::super::CpuVisibility;
+    use super::super::testing::{assert_conservative, random_scene};
     use super::*;
 
     /// On random dynamic triangles the GPU flags every stratum the CPU flags, is itself

@@ -1,0 +1,561 @@
+//! The irradiance cache (Ward, Rubinstein & Clear 1988; the paper's §2.1, §4.1, §4.3):
+//! records placed on surfaces seen by the camera, each holding the irradiance from a
+//! stratified final gather over its hemisphere, the harmonic-mean distance to what the
+//! gather hit, translational and rotational gradients (Ward & Heckbert 1992), and its strata
+//! — distance, flags and incoming radiance per direction — which the anchor method reuses
+//! (§4.1 `RadianceSample`).
+//!
+//! Placement is deterministic and parallel: image-space grids from coarse to fine; at each
+//! level every grid pixel whose surface point no record covers gets a record, all records of
+//! a level are gathered in parallel and inserted in pixel order. Validity radii are clamped
+//! to a range of pixel footprints (Tabellion & Lamorlette 2004), so density follows the image.
+//!
+
+pub mod gather;
+mod grid;
+pub mod record;
+
+use glam::Vec3;
+use rayon::prelude::*;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+pub use gather::{GatherHit, GatherTimings, Resolve};
+use grid::{REACH, RecordGrid};
+pub use record::{HIT_DYNAMIC, Record, Stratum, finish_record};
+
+use crate::geom::Motion;
+use crate::interaction::{SurfacePoint, trace};
+use crate::scene::{FrameCamera, FrameScene, Projection};
+
+/// Irradiance-cache settings ([`CacheParams::default`] = the `production` preset).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct CacheParams {
+    /// Strata in θ (M) and φ (N); M·N gather rays per record. Default 12×36 = 432.
+    pub strata: [u32; 2],
+    /// Ward's error threshold a: a record is used where its weight exceeds 1/a. Default 0.25.
+    pub error: f32,
+    /// A record is valid out to a·R_i; that distance is clamped to [min, max] pixel
+    /// footprints. Defaults 2 and 24.
+    pub min_spacing_px: f32,
+    pub max_spacing_px: f32,
+    /// Frames a record may go unused before it is removed (§4.3). Default 2.
+    pub max_age: u32,
+}
+
+impl Default for CacheParams {
+    fn default() -> Self {
+        CacheParams {
+            strata: [12, 36],
+            error: 0.25,
+            min_spacing_px: 2.0,
+            max_spacing_px: 24.0,
+            max_age: 2,
+        }
+    }
+}
+
+/// What [`IrradianceCache::interpolate`] found.
+#[derive(Debug, Clone, Copy)]
+pub struct Interpolated {
+    pub irradiance: Vec3,
+    /// Weighted fraction of the contributing records' strata traced this frame.
+    pub reshot: f32,
+    /// The record with the largest weight.
+    pub dominant_record: u32,
+}
+
+/// The cache with its lookup grid. Serialised as its records, the record id counter and
+/// Ward's a; the grid is derived from them and rebuilt on reading (the same grid: records
+/// enter it in index order either way).
+#[derive(Debug, Clone, Default)]
+pub struct IrradianceCache {
+    pub records: Vec<Record>,
+    grid: RecordGrid,
+    next_id: u32,
+}
+
+impl PartialEq for IrradianceCache {
+    fn eq(&self, other: &Self) -> bool {
+        self.records == other.records
+            && self.next_id == other.next_id
+            && self.grid.error == other.grid.error
+    }
+}
+
+/// What [`IrradianceCache`] serialises (borrowed for writing).
+#[derive(Serialize)]
+struct CacheRef<'a> {
+    records: &'a [Record],
+    next_id: u32,
+    error: f32,
+}
+
+/// What [`IrradianceCache`] deserialises: the fields of [`CacheRef`], owned.
+#[derive(Deserialize)]
+struct CacheData {
+    records: Vec<Record>,
+    next_id: u32,
+    error: f32,
+}
+
+impl Serialize for IrradianceCache {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        CacheRef {
+            records: &self.records,
+            next_id: self.next_id,
+            error: self.grid.error,
+        }
+        .serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for IrradianceCache {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let data = CacheData::deserialize(d)?;
+        let mut cache = IrradianceCache {
+            records: data.records,
+            grid: RecordGrid::default(),
+            next_id: data.next_id,
+        };
+        cache.grid.error = data.error;
+        cache.rebuild_tree();
+        Ok(cache)
+    }
+}
+
+/// World size of one pixel at `x` as seen by `camera` for an image `height` pixels tall.
+pub fn pixel_footprint(camera: &FrameCamera, x: Vec3, height: u32) -> f32 {
+    match camera.projection {
+        Projection::Perspective { yfov } => {
+            let depth = (x - camera.origin)
+                .dot(camera.forward)
+                .abs()
+                .max(f32::MIN_POSITIVE);
+            depth * 2.0 * (0.5 * yfov).tan() / height as f32
+        }
+        Projection::Orthographic { ymag } => 2.0 * ymag / height as f32,
+    }
+}
+
+impl IrradianceCache {
+    pub fn len(&self) -> usize {
+        self.records.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.records.is_empty()
+    }
+
+    /// Rebuilds the lookup grid (after records were removed or changed).
+    fn rebuild_tree(&mut self) {
+        let error = self.grid.error;
+        self.grid = RecordGrid::default();
+        self.grid.error = error;
+        for (i, r) in self.records.iter().enumerate() {
+            self.grid.insert(i as u32, r);
+        }
+    }
+
+    /// Sets Ward's a the lookups will use (at most `REACH` times it).
+    pub fn set_error(&mut self, a: f32) {
+        if self.grid.error != a {
+            self.grid.error = a;
+            self.rebuild_tree();
+        }
+    }
+
+    /// Drops dynamic records, and static ones unused for more than `max_age` frames (§4.3).
+    pub fn expire(&mut self, frame: i32, max_age: u32) {
+        self.records
+            .retain(|r| r.motion == Motion::Static && frame - r.last_used <= max_age as i32);
+        self.rebuild_tree();
+    }
+
+    fn insert(&mut self, r: Record) {
+        self.grid.insert(self.records.len() as u32, &r);
+        self.records.push(r);
+    }
+
+    /// Ward's weight of record `r` at (x, n), or 0 where it must not be used: behind x, or
+    /// facing away. w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
+    fn weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
+        let ndot = n.dot(r.normal);
+        if ndot <= 0.0 {
+            return 0.0;
+        }
+        let d = x - r.position;
+        // Ward's "in front" test: reject records in front of x.
+        if d.dot(n + r.normal) * 0.5 < -0.05 * r.radius {
+            return 0.0;
+        }
+        // Capped at 1e4: at a record's own position the weight is infinite, and weighted sums
+        // must stay finite (pixel centres land exactly on records placed there).
+        let e = d.length() / r.radius + (1.0 - ndot).max(0.0).sqrt();
+        1.0 / e.max(1e-4)
+    }
+
+    /// Interpolated irradiance at (x, n) from records whose weight exceeds 1/a, with
+    /// gradients; `None` where no record is valid. `used` receives contributing records.
+    pub fn interpolate(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        a: f32,
+        used: &mut Vec<u32>,
+    ) -> Option<Interpolated> {
+        if self.records.is_empty() {
+            return None;
+        }
+        debug_assert!(
+            a <= REACH * self.grid.error * 1.0001,
+            "lookup beyond the grid's reach"
+        );
+        let mut sum = Vec3::ZERO;
+        let mut wsum = 0.0f32;
+        let mut reshot = 0.0f32;
+        let mut dominant = (0.0f32, 0);
+        let mut idx = Vec::new();
+        self.grid.candidates(x, &mut idx);
+        for i in idx {
+            let r = &self.records[i as usize];
+            let w = Self::weight(r, x, n);
+            if w <= 1.0 / a {
+                continue;
+            }
+            sum += w * r.extrapolate(x, n).max(Vec3::ZERO);
+            wsum += w;
+            reshot += w * r.reshot;
+            if w > dominant.0 {
+                dominant = (w, i);
+            }
+            used.push(i);
+        }
+        (wsum > 0.0).then(|| Interpolated {
+            irradiance: sum / wsum,
+            reshot: reshot / wsum,
+            dominant_record: dominant.1,
+        })
+    }
+
+    /// True if some record is valid at (x, n).
+    pub fn covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
+        if self.records.is_empty() {
+            return false;
+        }
+        let mut idx = Vec::new();
+        self.grid.candidates(x, &mut idx);
+        idx.iter()
+            .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
+    }
+
+    /// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the
+    /// jitter inside the stratum depends on the id only, so a record's rays are the same in
+    /// every frame.
+    pub fn regather(
+        &mut self,
+        frame: &FrameScene,
+        p: &CacheParams,
+        frame_number: i32,
+        resolve: &mut Resolve,
+        timings: &mut GatherTimings,
+    ) {
+        let t0 = std::time::Instant::now();
+        let hits: Vec<Vec<GatherHit>> = self
+            .records
+            .par_iter()
+            .map(|r| gather::trace_strata(frame, &r.surface_point(), r.id, p))
+            .collect();
+        timings.final_gathering += t0.elapsed().as_secs_f64();
+        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        let t1 = std::time::Instant::now();
+        let footprints: Vec<f32> = self.records.iter().map(|r| r.footprint).collect();
+        let resolved = resolve(&footprints, hits);
+        let updated: Vec<Record> = self
+            .records
+            .par_iter()
+            .zip(resolved)
+            .map(|(r, (strata, rad))| r.with_strata(strata, &rad, p, frame_number))
+            .collect();
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        self.records = updated;
+        self.rebuild_tree();
+    }
+
+    /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
+    /// grids from `coarsest` down to 1.
+    #[allow(clippy::too_many_arguments)] // placement needs the view and the method
+    pub fn place(
+        &mut self,
+        frame: &FrameScene,
+        width: u32,
+        height: u32,
+        p: &CacheParams,
+        frame_number: i32,
+        resolve: &mut Resolve,
+        timings: &mut GatherTimings,
+    ) {
+        let coarsest = 16u32;
+        let mut spacing = coarsest;
+        loop {
+            let level_first = spacing == coarsest;
+            let candidates: Vec<(u32, u32)> = (0..height)
+                .step_by(spacing as usize)
+                .flat_map(|y| (0..width).step_by(spacing as usize).map(move |x| (x, y)))
+                .filter(|&(x, y)| level_first || x % (2 * spacing) != 0 || y % (2 * spacing) != 0)
+                .collect();
+            let needed: Vec<(u32, SurfacePoint)> = candidates
+                .par_iter()
+                .filter_map(|&(x, y)| {
+                    let (o, d) = frame.camera.ray(
+                        (x as f32 + 0.5) / width as f32,
+                        (y as f32 + 0.5) / height as f32,
+                    );
+                    let sp = trace(frame, o, d)?;
+                    (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
+                })
+                .collect();
+            self.add_records(frame, &needed, height, p, frame_number, resolve, timings);
+            if spacing == 1 {
+                break;
+            }
+            spacing /= 2;
+        }
+    }
+
+    /// Gathers and inserts records at the given surface points (in order).
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_records(
+        &mut self,
+        frame: &FrameScene,
+        points: &[(u32, SurfacePoint)],
+        height: u32,
+        p: &CacheParams,
+        frame_number: i32,
+        resolve: &mut Resolve,
+        timings: &mut GatherTimings,
+    ) {
+        if points.is_empty() {
+            return;
+        }
+        let first_id = self.next_id;
+        self.next_id += points.len() as u32;
+        let t0 = std::time::Instant::now();
+        let hits: Vec<Vec<GatherHit>> = points
+            .par_iter()
+            .enumerate()
+            .map(|(i, (_, sp))| gather::trace_strata(frame, sp, first_id + i as u32, p))
+            .collect();
+        timings.final_gathering += t0.elapsed().as_secs_f64();
+        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        let t1 = std::time::Instant::now();
+        let footprints: Vec<f32> = points
+            .iter()
+            .map(|(_, sp)| pixel_footprint(&frame.camera, sp.position, height))
+            .collect();
+        let resolved = resolve(&footprints, hits);
+        let records: Vec<Record> = points
+            .par_iter()
+            .zip(resolved)
+            .enumerate()
+            .map(|(i, ((_, sp), (strata, rad)))| {
+                finish_record(
+                    sp,
+                    sp.hit.motion,
+                    first_id + i as u32,
+                    footprints[i],
+                    strata,
+                    &rad,
+                    p,
+                    frame_number,
+                )
+            })
+            .collect();
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        for r in records {
+            self.insert(r);
+        }
+    }
+
+    /// Replaces every record (same count, same order) and rebuilds the lookup tree.
+    pub fn replace_records(&mut self, records: Vec<Record>) {
+        self.records = records;
+        self.rebuild_tree();
+    }
+
+    /// Marks records as used in `frame`.
+    pub fn touch(&mut self, used: &[u32], frame: i32) {
+        for &i in used {
+            self.records[i as usize].last_used = frame;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::anchor::AnchorId;
+    use crate::cache::gather::estimate_all;
+    use crate::geom::{Geometry, TriangleShading, triangle};
+
+    #[test]
+    fn strata_fit_in_six_bytes_and_round_trip() {
+        assert_eq!(size_of::<Stratum>(), 6);
+        for scale in [1e-3f32, 1.0, 1e4] {
+            let s = Stratum::new(
+                Some(AnchorId(123_456)),
+                HIT_DYNAMIC,
+                37.5 * scale,
+                0.01 * scale,
+            );
+            assert_eq!(s.link(), Some(AnchorId(123_456)));
+            assert_eq!(s.flags(), HIT_DYNAMIC);
+            assert!((s.distance(0.01 * scale) - 37.5 * scale).abs() < 37.5 * scale * 1e-3);
+            let miss = Stratum::new(None, 0, f32::INFINITY, scale);
+            assert!(!miss.hit() && miss.link().is_none());
+        }
+    }
+    use crate::scene::{FrameScene, Material, StaticSet};
+    use glam::Vec2;
+
+    /// A floor (y = 0) and a wall (x = 0, height 1, long in z) whose face towards +x emits
+    /// radiance 1 into the gather (the radiance estimate below). From the floor at distance
+    /// d the wall's view factor is F = (1 − d/√(d² + 1))/2, so E = πF and
+    /// dE/dd = −(π/2)/(d² + 1)^{3/2}.
+    fn scene() -> FrameScene {
+        let mut g = Geometry::default();
+        let quad = |g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3| {
+            for t in [triangle(a, b, c), triangle(a, c, d)] {
+                let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
+                g.triangles.push(t);
+                g.shading.push(TriangleShading {
+                    normals: [n; 3],
+                    uvs: [Vec2::ZERO; 3],
+                    material: 0,
+                    prim: 0,
+                });
+            }
+        };
+        let l = 200.0;
+        quad(
+            &mut g,
+            Vec3::new(-l, 0.0, -l),
+            Vec3::new(-l, 0.0, l),
+            Vec3::new(l, 0.0, l),
+            Vec3::new(l, 0.0, -l),
+        );
+        quad(
+            &mut g,
+            Vec3::new(0.0, 0.0, -l),
+            Vec3::new(0.0, 1.0, -l),
+            Vec3::new(0.0, 1.0, l),
+            Vec3::new(0.0, 0.0, l),
+        );
+        let statics = StaticSet::new(g);
+        let camera = crate::scene::FrameCamera::look_at(
+            Vec3::new(3.0, 2.0, 0.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            1.0,
+            1.0,
+        );
+        FrameScene::new(
+            &statics,
+            Geometry::default(),
+            Vec::new(),
+            camera,
+            &[Material::default()],
+        )
+    }
+
+    fn wall_radiance(sp: &SurfacePoint) -> Vec3 {
+        if sp.ng.x > 0.5 { Vec3::ONE } else { Vec3::ZERO }
+    }
+
+    fn record_at(frame: &FrameScene, d: f32, p: &CacheParams) -> Record {
+        let o = Vec3::new(d, 0.5, 0.25);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let sp = SurfacePoint::new(frame, hit, o, -Vec3::Y);
+        let hits = gather::trace_strata(frame, &sp, 3, p);
+        let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
+        finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, p, 0)
+    }
+
+    #[test]
+    fn irradiance_and_translational_gradient_match_the_view_factor() {
+        let frame = scene();
+        let p = CacheParams {
+            strata: [40, 120],
+            ..CacheParams::default()
+        };
+        for d in [0.5f32, 1.0, 2.0] {
+            let r = record_at(&frame, d, &p);
+            let e = std::f32::consts::FRAC_PI_2 * (1.0 - d / (d * d + 1.0).sqrt());
+            let de = -std::f32::consts::FRAC_PI_2 / (d * d + 1.0).powf(1.5);
+            assert!(
+                (r.irradiance.x - e).abs() < 0.025 * e,
+                "d {d}: E {} vs {e}",
+                r.irradiance.x
+            );
+            let g = r.grad_t[0];
+            assert!(
+                (g.x - de).abs() < 0.1 * de.abs(),
+                "d {d}: dE/dx {} vs {de}",
+                g.x
+            );
+            assert!(
+                g.y.abs() < 0.05 * de.abs() && g.z.abs() < 0.05 * de.abs(),
+                "d {d}: gradient {g}"
+            );
+        }
+    }
+
+    /// Tilting the normal towards the wall by δ changes E by (n × n')·∇_r E to first order;
+    /// compared with a second gather at the tilted normal.
+    #[test]
+    fn rotational_gradient_predicts_a_tilted_gather() {
+        let frame = scene();
+        let p = CacheParams {
+            strata: [40, 120],
+            ..CacheParams::default()
+        };
+        let r = record_at(&frame, 1.0, &p);
+        let delta = 0.05f32;
+        let n2 = Vec3::new(-delta.sin(), delta.cos(), 0.0);
+        let o = Vec3::new(1.0, 0.5, 0.25);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let mut sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        sp.ns = n2;
+        let hits = gather::trace_strata(&frame, &sp, 3, &p);
+        let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
+        let tilted = finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, &p, 0);
+        let predicted = r.extrapolate(r.position, n2).x;
+        let actual = tilted.irradiance.x;
+        let change = actual - r.irradiance.x;
+        assert!(change > 0.0, "tilting towards the wall gathers more of it");
+        assert!(
+            (predicted - actual).abs() < 0.15 * change,
+            "predicted {predicted}, gathered {actual} (from {})",
+            r.irradiance.x
+        );
+    }
+}

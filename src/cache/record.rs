@@ -1,0 +1,281 @@
+//! Cache records and their strata (Ward, Rubinstein & Clear 1988; the paper's §4.1): a
+//! record holds the irradiance of a stratified final gather over its hemisphere, Ward's
+//! radius, Ward & Heckbert gradients, and its strata — distance, flags and anchor link per
+//! direction (§4.1 `RadianceSample`).
+//!
+//! Gradients follow the stratified formulation of Ward & Heckbert for cosine-weighted
+//! strata (as given in Křivánek & Gautron, "Practical Global Illumination with Irradiance
+//! Caching", 2009, §2.2).
+
+use std::f32::consts::PI;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use super::CacheParams;
+use crate::accel::Hit;
+use crate::anchor::AnchorId;
+use crate::geom::{Motion, basis};
+use crate::interaction::SurfacePoint;
+
+/// Stratum flag: the gather ray hit a dynamic prim (its radiance was estimated directly).
+pub const HIT_DYNAMIC: u8 = 1;
+
+/// One gather direction of a record (the paper's `RadianceSample`, §4.1) in 6 bytes: a
+/// 30-bit anchor link with two flag bits, and the hit distance as an f16 in units of the
+/// record's pixel footprint (scale-free: the same bits at 1e−3 and 1e4; infinite on a miss).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[repr(C)]
+pub struct Stratum([u16; 3]);
+
+impl Stratum {
+    pub fn new(link: Option<AnchorId>, flags: u8, distance: f32, scale: f32) -> Self {
+        let link = link.map_or(NO_LINK, |a| a.0).min(NO_LINK);
+        let d = if distance.is_finite() {
+            half::f16::from_f32((distance / scale).min(65504.0)).to_bits()
+        } else {
+            half::f16::INFINITY.to_bits()
+        };
+        Stratum([
+            link as u16,
+            (link >> 16) as u16 | (flags as u16 & 3) << 14,
+            d,
+        ])
+    }
+
+    /// The anchor the stratum's ray reaches, if it hit static geometry in the anchor method.
+    pub fn link(&self) -> Option<AnchorId> {
+        let l = self.0[0] as u32 | ((self.0[1] as u32) & 0x3fff) << 16;
+        (l != NO_LINK).then_some(AnchorId(l))
+    }
+
+    pub fn flags(&self) -> u8 {
+        (self.0[1] >> 14) as u8
+    }
+
+    pub fn set_flags(&mut self, flags: u8) {
+        self.0[1] = (self.0[1] & 0x3fff) | (flags as u16 & 3) << 14;
+    }
+
+    /// Hit distance given the record's footprint `scale`; infinite on a miss.
+    pub fn distance(&self, scale: f32) -> f32 {
+        half::f16::from_bits(self.0[2]).to_f32() * scale
+    }
+
+    pub fn hit(&self) -> bool {
+        half::f16::from_bits(self.0[2]).is_finite()
+    }
+}
+
+/// "No anchor" in a stratum's 30-bit link.
+const NO_LINK: u32 = (1 << 30) - 1;
+
+/// An irradiance cache record.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    pub position: Vec3,
+    pub normal: Vec3,
+    pub irradiance: Vec3,
+    /// Ward's R_i: harmonic-mean hit distance, clamped so that a·R_i lies between the
+    /// minimum and maximum spacing in pixel footprints.
+    pub radius: f32,
+    /// Rotational and translational gradients, per colour channel (R, G, B).
+    pub grad_r: [Vec3; 3],
+    pub grad_t: [Vec3; 3],
+    pub motion: Motion,
+    /// Seeds the record's stratum jitter: the same directions every frame.
+    pub id: u32,
+    /// Last frame in which the record contributed to a pixel (§4.3).
+    pub last_used: i32,
+    /// Pixel footprint at creation, for clamping the radius when re-gathered.
+    pub footprint: f32,
+    /// Ray-origin offset and geometric normal of the surface the record sits on.
+    pub offset: f32,
+    pub ng: Vec3,
+    pub strata: Vec<Stratum>,
+    /// Fraction of the strata traced this frame (1 for brute force and new records).
+    pub reshot: f32,
+    /// The anchor contributing most of the record's irradiance.
+    pub dominant_anchor: Option<AnchorId>,
+}
+
+impl Record {
+    /// First-order irradiance at (x, n) from the record's gradients (Ward & Heckbert 1992):
+    /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as [`gradients`] computes it.
+    pub fn extrapolate(&self, x: Vec3, n: Vec3) -> Vec3 {
+        let rot = n.cross(self.normal);
+        let dx = x - self.position;
+        self.irradiance
+            + Vec3::from_array(std::array::from_fn(|c| {
+                rot.dot(self.grad_r[c]) + dx.dot(self.grad_t[c])
+            }))
+    }
+}
+
+pub fn finish_record(
+    sp: &SurfacePoint,
+    motion: Motion,
+    id: u32,
+    footprint: f32,
+    strata: Vec<Stratum>,
+    radiance: &[Vec3],
+    p: &CacheParams,
+    frame: i32,
+) -> Record {
+    let [m, n] = p.strata;
+    let scale = PI / (m * n) as f32;
+    let irradiance = radiance.iter().sum::<Vec3>() * scale;
+    let inv: f32 = strata
+        .iter()
+        .filter(|s| s.hit())
+        .map(|s| 1.0 / s.distance(footprint).max(f32::MIN_POSITIVE))
+        .sum();
+    let harmonic = if inv > 0.0 {
+        (m * n) as f32 / inv
+    } else {
+        f32::INFINITY
+    };
+    // Clamp so that the region where the record is valid (distance < a·R) spans between
+    // min and max pixel footprints (Tabellion & Lamorlette 2004).
+    let radius = harmonic.clamp(
+        p.min_spacing_px * footprint / p.error,
+        p.max_spacing_px * footprint / p.error,
+    );
+    let r_min = p.min_spacing_px * footprint / p.error;
+    let (grad_r, mut grad_t) = gradients(&strata, radiance, footprint, sp.ns, m, n, r_min);
+    // Gradient limiting (Křivánek et al. 2006): extrapolation across the region where the
+    // record is valid (a·R_i) may change each channel by at most its own value, so noisy
+    // radiance next to a corner cannot turn into a large gradient.
+    for c in 0..3 {
+        let limit = irradiance[c] / (p.error * radius).max(f32::MIN_POSITIVE);
+        let g = grad_t[c].length();
+        if g > limit {
+            grad_t[c] *= limit / g;
+        }
+    }
+    Record {
+        position: sp.position,
+        normal: sp.ns,
+        irradiance,
+        radius,
+        grad_r,
+        grad_t,
+        motion,
+        id,
+        last_used: frame,
+        footprint,
+        offset: sp.offset,
+        ng: sp.ng,
+        strata,
+        reshot: 1.0,
+        dominant_anchor: None,
+    }
+}
+
+/// Re-gathers every record (brute force: every frame, every stratum).
+
+impl Record {
+    /// The record re-made from new strata at its own position; id, footprint and last use
+    /// are kept.
+    pub fn with_strata(
+        &self,
+        strata: Vec<Stratum>,
+        radiance: &[Vec3],
+        p: &CacheParams,
+        frame: i32,
+    ) -> Record {
+        let mut new = finish_record(
+            &self.surface_point(),
+            self.motion,
+            self.id,
+            self.footprint,
+            strata,
+            radiance,
+            p,
+            frame,
+        );
+        new.last_used = self.last_used;
+        new
+    }
+
+    /// The surface point of the record, for re-gathering from its own position and normal.
+    pub fn surface_point(&self) -> SurfacePoint {
+        SurfacePoint {
+            position: self.position,
+            ng: self.ng,
+            ns: self.normal,
+            uv: glam::Vec2::ZERO,
+            offset: self.offset,
+            material: 0,
+            front: true,
+            hit: Hit {
+                t: 0.0,
+                motion: self.motion,
+                triangle: 0,
+            },
+        }
+    }
+}
+
+/// Rotational and translational irradiance gradients from cosine-weighted strata (Ward &
+/// Heckbert 1992, in the form of Křivánek & Gautron 2009, eqs. 2.13–2.14):
+///
+/// ∇_r E = π/(MN) Σ_k v_k Σ_j −tan θ_j L_jk
+/// ∇_t E = Σ_k [ u_k (2π/N) Σ_{j≥1} sin θ_j− cos² θ_j− / min(r_{j−1,k}, r_jk) (L_jk − L_{j−1,k})
+///             + v_k− Σ_j (sin θ_j+ − sin θ_j−) / min(r_jk, r_{j,k−1}) (L_jk − L_{j,k−1}) ]
+///
+/// Distances below `r_min` (the record's smallest radius) count as `r_min`: a gather ray that
+/// grazes a corner says little about how irradiance changes over the record's extent.
+fn gradients(
+    strata: &[Stratum],
+    radiance: &[Vec3],
+    scale: f32,
+    n: Vec3,
+    m: u32,
+    nn: u32,
+    r_min: f32,
+) -> ([Vec3; 3], [Vec3; 3]) {
+    let (t, b) = basis(n);
+    let mut gr = [Vec3::ZERO; 3];
+    let mut gt = [Vec3::ZERO; 3];
+    let idx = |j: u32, k: u32| (j * nn + (k % nn)) as usize;
+    let dist = |i: usize| strata[i].distance(scale);
+    for k in 0..nn {
+        let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
+        let phi_m = 2.0 * PI * k as f32 / nn as f32;
+        let u_k = t * phi_c.cos() + b * phi_c.sin();
+        let v_k = -t * phi_c.sin() + b * phi_c.cos();
+        let v_km = -t * phi_m.sin() + b * phi_m.cos();
+        let mut rot = Vec3::ZERO;
+        let mut theta_term = Vec3::ZERO;
+        let mut phi_term = Vec3::ZERO;
+        for j in 0..m {
+            let s = idx(j, k);
+            let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
+            let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+            rot -= tan_c * radiance[s];
+            let sin_m = (j as f32 / m as f32).sqrt();
+            let sin_p = ((j + 1) as f32 / m as f32).sqrt();
+            if j > 0 {
+                let prev = idx(j - 1, k);
+                let r = dist(prev).min(dist(s)).max(r_min);
+                if r.is_finite() && r > 0.0 {
+                    let cos2 = 1.0 - sin_m * sin_m;
+                    theta_term += (sin_m * cos2 / r) * (radiance[s] - radiance[prev]);
+                }
+            }
+            let left = idx(j, k + nn - 1);
+            let r = dist(left).min(dist(s)).max(r_min);
+            if r.is_finite() && r > 0.0 {
+                phi_term += ((sin_p - sin_m) / r) * (radiance[s] - radiance[left]);
+            }
+        }
+        rot *= PI / (m * nn) as f32;
+        theta_term *= 2.0 * PI / nn as f32;
+        for c in 0..3 {
+            gr[c] += v_k * rot[c];
+            gt[c] += u_k * theta_term[c] + v_km * phi_term[c];
+        }
+    }
+    (gr, gt)
+}

@@ -1,0 +1,85 @@
+//! The vocabulary every stage shares: the static/dynamic split of prims (the paper's §3),
+//! world-space triangles with their shading data, and the directions sampled around a
+//! normal.
+
+use std::f32::consts::PI;
+
+use glam::{Vec2, Vec3, Vec3A};
+use serde::{Deserialize, Serialize};
+
+pub use obvhs::triangle::Triangle;
+
+/// Whether a prim may change between frames (the paper's static/dynamic objects, §3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Motion {
+    Static,
+    Dynamic,
+}
+
+/// Per-triangle shading data, parallel to [`Geometry::triangles`].
+#[derive(Debug, Clone, Copy)]
+pub struct TriangleShading {
+    /// Vertex normals (the geometric normal where the mesh has none).
+    pub normals: [Vec3; 3],
+    pub uvs: [Vec2; 3],
+    pub material: u32,
+    /// Global prim (node) index: layers' nodes numbered one after another.
+    pub prim: u32,
+}
+
+/// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
+#[derive(Debug, Clone, Default)]
+pub struct Geometry {
+    pub triangles: Vec<Triangle>,
+    pub shading: Vec<TriangleShading>,
+}
+
+impl Geometry {
+    pub fn len(&self) -> usize {
+        self.triangles.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+
+    pub fn bytes(&self) -> usize {
+        self.triangles.len() * (size_of::<Triangle>() + size_of::<TriangleShading>())
+    }
+}
+
+/// An orthonormal basis around `n` (Duff et al. 2017).
+pub fn basis(n: Vec3) -> (Vec3, Vec3) {
+    let s = 1.0f32.copysign(n.z);
+    let a = -1.0 / (s + n.z);
+    let b = n.x * n.y * a;
+    (
+        Vec3::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x),
+        Vec3::new(b, s + n.y * n.y * a, -n.y),
+    )
+}
+
+/// Cosine-weighted direction around `n` from two uniform numbers.
+pub fn cosine_direction(n: Vec3, u1: f32, u2: f32) -> Vec3 {
+    let (t, b) = basis(n);
+    let r = u1.sqrt();
+    let phi = 2.0 * PI * u2;
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt()).normalize()
+}
+
+pub fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
+    let z = 1.0 - 2.0 * u1;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * PI * u2;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Helper for tests and tools: a triangle from three points.
+pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Triangle {
+    Triangle {
+        v0: Vec3A::from(a),
+        v1: Vec3A::from(b),
+        v2: Vec3A::from(c),
+    }
+}

@@ -1,0 +1,466 @@
+//! The anchor method: temporally coherent final gathering (the paper's §3–§4.3,
+//! Pseudocode 1 and 2).
+//!
+//! Every frame: shoot the photons (the same QMC paths as before where nothing moved),
+//! re-estimate L_i at every anchor and relink each anchor's nearest photon (§3.3.2); drop
+//! dynamic and stale records (§4.3); flag the strata of every static record that may see a
+//! dynamic prim ([`Visibility`], §3.2) and re-trace exactly those flagged now and those whose
+//! ray hit a dynamic prim in the previous frame ("if dynamic object was hit in current or
+//! previous frame", Pseudocode 2: the second set catches disocclusion) — a re-traced ray that
+//! hits dynamic geometry gets its radiance the brute force way, one that hits static geometry
+//! attaches to an anchor (Pseudocode 1) unless it lands where it did before; every other
+//! stratum reads its anchor. A stratum flagged in the previous frame whose ray hit static
+//! geometry and is not flagged now needs nothing: its direction is fixed and nothing dynamic
+//! can be in its way. New records (camera motion, dynamic prims) gather all their
+//! strata and attach them the same way.
+//!
+//! Attachment is sequential in record and stratum order, so anchors are created in the
+//! same order for any thread count; ray tracing and estimates run in parallel.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::{FrameContext, GiParams};
+use crate::anchor::attach::Attacher;
+use crate::anchor::importons::Importons;
+use crate::anchor::{AnchorId, AnchorSet, Density, Quantizer};
+use crate::cache::gather::{self, GatherHit, GatherTimings};
+use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Stratum};
+use crate::color::luminance;
+use crate::geom::Motion;
+use crate::photon::PhotonMap;
+use crate::scene::FrameScene;
+use crate::visibility::{self, DynamicSet, StrataBits, Visibility};
+
+/// Anchor statistics of one frame.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct AnchorStats {
+    pub anchors: u64,
+    pub anchors_created: u64,
+    /// Anchors whose L_i was estimated again (the others kept theirs: no photon within
+    /// their estimate's reach changed).
+    pub anchors_reestimated: u64,
+    pub rays_reshot: u64,
+    pub visibility_s: f64,
+    /// Anchors by how many strata link them (the paper's Figure 8): 1, 2–10, 11–100,
+    /// 101–1000, more.
+    pub reuse_histogram: [u64; 5],
+    pub rebalanced: bool,
+}
+
+/// Resolves gather hits for the anchor method: dynamic hits by the photon map (parallel),
+/// static hits by attachment (sequential, in order). `previous` are the strata that re-shot
+/// hits replace: a re-shot ray that lands on static geometry at the distance it had before
+/// (its stratum was flagged, but nothing dynamic was in the way) keeps its anchor, as an
+/// unflagged stratum would; re-attaching it could pick another anchor and add flicker.
+fn resolve(
+    att: &Attacher,
+    set: &mut AnchorSet,
+    footprints: &[f32],
+    hits: Vec<Vec<GatherHit>>,
+    previous: Option<&[Vec<Stratum>]>,
+) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
+    let dynamic: Vec<Vec<Vec3>> = hits
+        .par_iter()
+        .map(|h| {
+            h.iter()
+                .map(|g| match &g.sp {
+                    Some(sp) if sp.hit.motion == Motion::Dynamic => {
+                        sp.albedo(att.m)
+                            * std::f32::consts::FRAC_1_PI
+                            * att.pm.irradiance(sp.position, sp.ng, att.k)
+                    }
+                    _ => Vec3::ZERO,
+                })
+                .collect()
+        })
+        .collect();
+    let mut out = Vec::with_capacity(hits.len());
+    for (ri, (h, dyn_rad)) in hits.into_iter().zip(dynamic).enumerate() {
+        let scale = footprints[ri];
+        let mut strata = Vec::with_capacity(h.len());
+        let mut rad = Vec::with_capacity(h.len());
+        for (si, g) in h.iter().enumerate() {
+            // The anchor of a re-shot stratum whose ray lands where it did before.
+            let kept = previous
+                .map(|p| p[ri][si])
+                .filter(|old| {
+                    old.flags() & HIT_DYNAMIC == 0
+                        && Stratum::new(None, 0, g.distance, scale).distance(scale)
+                            == old.distance(scale)
+                })
+                .and_then(|old| old.link());
+            let (stratum, radiance) = match (&g.sp, kept) {
+                (Some(sp), Some(id)) if sp.hit.motion == Motion::Static => (
+                    Stratum::new(Some(id), 0, g.distance, scale),
+                    set.anchor(id).radiance(),
+                ),
+                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => (
+                    Stratum::new(None, HIT_DYNAMIC, g.distance, scale),
+                    dyn_rad[si],
+                ),
+                (Some(sp), _) => {
+                    let id = att.attach(set, sp);
+                    (
+                        Stratum::new(Some(id), 0, g.distance, scale),
+                        set.anchor(id).radiance(),
+                    )
+                }
+                (None, _) => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
+            };
+            strata.push(stratum);
+            rad.push(radiance);
+        }
+        out.push((strata, rad));
+    }
+    out
+}
+
+/// One frame of the anchor method's cache work (Pseudocode 2): everything up to shading,
+/// phase by phase.
+pub fn update(
+    ctx: &FrameContext,
+    cache: &mut IrradianceCache,
+    anchors: &mut Option<AnchorSet>,
+    pm: &PhotonMap,
+    params: &GiParams,
+    vis: &dyn Visibility,
+    timings: &mut GatherTimings,
+) -> Result<AnchorStats, visibility::Error> {
+    let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
+    let mut st = AnchorStats::default();
+    let set = anchors.get_or_insert_with(|| {
+        let (lo, hi) = static_box(ctx.scene);
+        AnchorSet::new(Quantizer::new(lo, hi))
+    });
+
+    let t = Instant::now();
+    st.anchors_reestimated = reestimate_anchors(set, pm, ap.anchor_k(k));
+    relink_photons(set, pm);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+
+    let before = cache.len();
+    cache.expire(ctx.frame, cp.max_age);
+    let removed = cache.len() < before;
+
+    let t = Instant::now();
+    let flags = flag_strata(ctx.scene, cache, cp.strata, vis)?;
+    st.visibility_s = t.elapsed().as_secs_f64();
+
+    let importons = (ap.density == Density::Importance).then(|| {
+        Importons::trace(
+            ctx.scene,
+            ctx.width,
+            ctx.height,
+            ap.importons_per_pixel,
+            ctx.seed,
+        )
+    });
+    let att = Attacher {
+        frame: ctx.scene,
+        m: ctx.materials,
+        pm,
+        k,
+        params: *ap,
+        scale: static_radius(ctx.scene),
+        importance: importons.as_ref(),
+    };
+
+    let t = Instant::now();
+    let (todo, hits) = reshoot(ctx.scene, cache, &flags, cp);
+    timings.final_gathering += t.elapsed().as_secs_f64();
+    st.rays_reshot = todo.iter().map(|l| l.len() as u64).sum();
+    timings.rays += st.rays_reshot;
+
+    let t = Instant::now();
+    update_records(&att, set, cache, &todo, hits, cp, ctx.frame);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+
+    place_records(ctx, &att, set, cache, cp, timings);
+
+    let refs = anchor_references(set, cache);
+    if removed {
+        let referenced: Vec<bool> = refs.iter().map(|&c| c > 0).collect();
+        set.collect(&referenced);
+    } else {
+        st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
+    }
+    st.reuse_histogram = reuse_histogram(&refs);
+    st.anchors = set.live_count() as u64;
+    st.anchors_created = set.take_created();
+    Ok(st)
+}
+
+/// Re-estimates L_i at the anchors from this frame's photons (§3.3.2); returns how many
+/// were estimated. The photons follow the same paths wherever nothing moved, so an anchor
+/// whose last estimate reached no photon that changed (gone, new or different) would get
+/// the same photons and the same value: it keeps it, and only the others are estimated
+/// again (the lazy recomputation the paper's §6 points to).
+fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> u64 {
+    let q = set.quantizer;
+    let changed = pm.changed_since(&set.previous_photons);
+    let changed_tree = (!changed.is_empty()).then(|| {
+        let pts: Vec<[f32; 3]> = changed.iter().map(|p| p.to_array()).collect();
+        kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
+    });
+    let set_ref = &*set;
+    let fresh: Vec<Option<(Vec3, f32)>> = set
+        .anchors
+        .par_iter()
+        .enumerate()
+        .map(|(i, a)| {
+            if !a.is_live() {
+                return None;
+            }
+            let x = a.position(&q);
+            let r2 = set_ref.reach2(AnchorId(i as u32));
+            let untouched = r2.is_finite()
+                && changed_tree.as_ref().is_none_or(|t| {
+                    t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
+                        .distance
+                        > r2
+                });
+            (!untouched).then(|| pm.irradiance_and_radius(x, a.normal(), anchor_k))
+        })
+        .collect();
+    let mut count = 0;
+    for (i, e) in fresh.into_iter().enumerate() {
+        if let Some((e, r2)) = e {
+            let id = AnchorId(i as u32);
+            set.anchor_mut(id).set_irradiance(e);
+            set.set_reach(id, r2);
+            count += 1;
+        }
+    }
+    count
+}
+
+/// Keeps this frame's photon paths for the next frame's comparison, and links each anchor's
+/// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it).
+fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap) {
+    let q = set.quantizer;
+    set.previous_photons = crate::photon::PhotonPaths {
+        photons: pm.photons.clone(),
+        path_start: pm.path_start.clone(),
+    };
+    set.photon_links = vec![None; pm.photons.len()];
+    let nearest: Vec<Option<usize>> = set
+        .anchors
+        .par_iter()
+        .map(|a| {
+            if a.is_live() {
+                pm.nearest(a.position(&q))
+            } else {
+                None
+            }
+        })
+        .collect();
+    for (i, ph) in nearest.into_iter().enumerate() {
+        if let Some(ph) = ph
+            && set.photon_links[ph].is_none()
+        {
+            set.photon_links[ph] = Some(AnchorId(i as u32));
+        }
+    }
+}
+
+/// Visibility of dynamic prims from every static record (§3.2): the strata that may see one.
+fn flag_strata(
+    frame: &FrameScene,
+    cache: &IrradianceCache,
+    strata: [u32; 2],
+    vis: &dyn Visibility,
+) -> Result<Vec<StrataBits>, visibility::Error> {
+    let dynamic = DynamicSet::new(&frame.dynamic_geometry);
+    let points: Vec<(Vec3, Vec3)> = cache
+        .records
+        .iter()
+        .map(|r| (r.position, r.normal))
+        .collect();
+    vis.flag(&points, strata, &dynamic)
+}
+
+/// Re-traces the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode
+/// 2): per record, the strata re-traced and their hits.
+fn reshoot(
+    frame: &FrameScene,
+    cache: &IrradianceCache,
+    flags: &[StrataBits],
+    cp: &CacheParams,
+) -> (Vec<Vec<u32>>, Vec<Vec<GatherHit>>) {
+    let todo: Vec<Vec<u32>> = cache
+        .records
+        .iter()
+        .zip(flags)
+        .map(|(r, f)| {
+            (0..r.strata.len() as u32)
+                .filter(|&s| f.get(s as usize) || r.strata[s as usize].flags() & HIT_DYNAMIC != 0)
+                .collect()
+        })
+        .collect();
+    let hits = cache
+        .records
+        .par_iter()
+        .zip(&todo)
+        .map(|(r, list)| {
+            let sp = r.surface_point();
+            list.iter()
+                .map(|&s| gather::trace_stratum(frame, &sp, r.id, cp, s))
+                .collect()
+        })
+        .collect();
+    (todo, hits)
+}
+
+/// Re-makes every existing record from its strata: the re-shot ones resolved anew, the
+/// others reading their anchors' current L_i.
+fn update_records(
+    att: &Attacher,
+    set: &mut AnchorSet,
+    cache: &mut IrradianceCache,
+    todo: &[Vec<u32>],
+    hits: Vec<Vec<GatherHit>>,
+    cp: &CacheParams,
+    frame: i32,
+) {
+    let footprints: Vec<f32> = cache.records.iter().map(|r| r.footprint).collect();
+    let previous: Vec<Vec<Stratum>> = cache
+        .records
+        .iter()
+        .zip(todo)
+        .map(|(r, list)| list.iter().map(|&s| r.strata[s as usize]).collect())
+        .collect();
+    let resolved = resolve(att, set, &footprints, hits, Some(&previous));
+    let set = &*set;
+    let updated: Vec<_> = cache
+        .records
+        .par_iter()
+        .zip(resolved)
+        .zip(todo)
+        .map(|((r, (new_strata, new_rad)), list)| {
+            let mut strata = r.strata.clone();
+            let mut rad = strata_radiance(set, &strata);
+            for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
+                strata[s as usize] = ns;
+                rad[s as usize] = nr;
+            }
+            let mut new = r.with_strata(strata, &rad, cp, frame);
+            new.reshot = list.len() as f32 / r.strata.len().max(1) as f32;
+            new.dominant_anchor = dominant(&new.strata, &rad);
+            new
+        })
+        .collect();
+    cache.replace_records(updated);
+}
+
+/// New records where the image needs them; all their strata attach.
+fn place_records(
+    ctx: &FrameContext,
+    att: &Attacher,
+    set: &mut AnchorSet,
+    cache: &mut IrradianceCache,
+    cp: &CacheParams,
+    timings: &mut GatherTimings,
+) {
+    let first_new = cache.len();
+    {
+        let mut resolver =
+            |fp: &[f32], hits: Vec<Vec<GatherHit>>| resolve(att, set, fp, hits, None);
+        cache.place(
+            ctx.scene,
+            ctx.width,
+            ctx.height,
+            cp,
+            ctx.frame,
+            &mut resolver,
+            timings,
+        );
+    }
+    for r in &mut cache.records[first_new..] {
+        let rad = strata_radiance(set, &r.strata);
+        r.dominant_anchor = dominant(&r.strata, &rad);
+    }
+}
+
+/// The radiance each stratum reads from its anchor (zero where it links none).
+fn strata_radiance(set: &AnchorSet, strata: &[Stratum]) -> Vec<Vec3> {
+    strata
+        .iter()
+        .map(|s| s.link().map_or(Vec3::ZERO, |a| set.anchor(a).radiance()))
+        .collect()
+}
+
+/// How many strata link each anchor.
+fn anchor_references(set: &AnchorSet, cache: &IrradianceCache) -> Vec<u32> {
+    let mut refs = vec![0u32; set.anchors.len()];
+    for r in &cache.records {
+        for s in &r.strata {
+            if let Some(a) = s.link() {
+                refs[a.index()] += 1;
+            }
+        }
+    }
+    refs
+}
+
+/// Anchors by how many strata link them (the paper's Figure 8).
+fn reuse_histogram(refs: &[u32]) -> [u64; 5] {
+    let mut h = [0; 5];
+    for &c in refs.iter().filter(|&&c| c > 0) {
+        let bin = match c {
+            1 => 0,
+            2..=10 => 1,
+            11..=100 => 2,
+            101..=1000 => 3,
+            _ => 4,
+        };
+        h[bin] += 1;
+    }
+    h
+}
+
+/// The anchor whose strata carry most of a record's irradiance (luminance).
+fn dominant(strata: &[Stratum], rad: &[Vec3]) -> Option<AnchorId> {
+    let mut sums: Vec<(AnchorId, f32)> = Vec::new();
+    for (s, r) in strata.iter().zip(rad) {
+        if let Some(a) = s.link() {
+            let l = luminance(*r);
+            match sums.iter_mut().find(|(id, _)| *id == a) {
+                Some(e) => e.1 += l,
+                None => sums.push((a, l)),
+            }
+        }
+    }
+    // Ties go to the lower id, so the choice does not depend on the strata's order.
+    let mut best: (Option<AnchorId>, f32) = (None, f32::MIN);
+    for &(a, l) in &sums {
+        if l > best.1 || (l == best.1 && best.0.is_none_or(|b| a < b)) {
+            best = (Some(a), l);
+        }
+    }
+    best.0
+}
+
+fn static_box(frame: &FrameScene) -> (Vec3, Vec3) {
+    let mut lo = Vec3::splat(f32::MAX);
+    let mut hi = Vec3::splat(f32::MIN);
+    for t in &frame.static_geometry.triangles {
+        for v in [t.v0, t.v1, t.v2] {
+            lo = lo.min(v.into());
+            hi = hi.max(v.into());
+        }
+    }
+    if lo.x > hi.x {
+        (Vec3::ZERO, Vec3::ONE)
+    } else {
+        (lo, hi)
+    }
+}
+
+/// Radius of the sphere around the static geometry's box: the unit of relative distances.
+fn static_radius(frame: &FrameScene) -> f32 {
+    let (lo, hi) = static_box(frame);
+    (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE)
+}

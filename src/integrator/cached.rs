@@ -1,0 +1,339 @@
+//! The methods that shade from the irradiance cache: `brute-force`, `precomputed` and
+//! `anchors`. Each frame has two phases. *Prepare*: trace the photons (§4.2), then bring
+//! the cache up to date — brute force and precomputed re-gather every stratum of every
+//! record and place new records ([`prepare_brute_force`]), anchors run Pseudocode 2
+//! ([`super::anchors::update`]). *Shade*: direct light by shadow rays at each camera hit, and
+//! the indirect light interpolated from the cache ([`CachedShading`]).
+
+use std::f32::consts::{FRAC_1_PI, PI};
+use std::time::Instant;
+
+use glam::Vec3;
+
+use super::anchors::AnchorStats;
+use super::{
+    Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade, shading_dims,
+};
+use crate::anchor::{AnchorId, AnchorSet};
+use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
+use crate::geom::Motion;
+use crate::interaction::{Materials, SurfacePoint, direct_irradiance, trace};
+use crate::photon::PhotonMap;
+use crate::photon::precomputed::PrecomputedIrradiance;
+use crate::visibility::Visibility;
+
+/// The photon-mapping methods that shade from the irradiance cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CachedMethod {
+    BruteForce,
+    Precomputed,
+    Anchors,
+}
+
+/// Which estimate a gather hit uses.
+#[derive(Clone, Copy)]
+pub enum GatherEstimate<'a> {
+    PhotonMap(&'a PhotonMap, usize),
+    Precomputed(&'a PrecomputedIrradiance),
+}
+
+impl GatherEstimate<'_> {
+    /// Reflected radiance leaving a gather hit: albedo × E / π (emission excluded: direct
+    /// light is computed separately at the camera hit).
+    pub fn radiance(&self, sp: &SurfacePoint, m: Materials) -> Vec3 {
+        let e = match *self {
+            GatherEstimate::PhotonMap(pm, k) => pm.irradiance(sp.position, sp.ng, k),
+            GatherEstimate::Precomputed(pc) => pc.lookup(sp.position, sp.ng),
+        };
+        sp.albedo(m) * FRAC_1_PI * e
+    }
+}
+
+/// Timings and counts of one frame's global illumination (the paper's Table 1 rows).
+#[derive(Debug, Clone, Default)]
+pub struct CachedStats {
+    pub photon_tracing: f64,
+    pub irradiance_estimation: f64,
+    pub final_gathering: f64,
+    pub cache_interpolation: f64,
+    pub direct_lighting: f64,
+    pub photons: u64,
+    pub caches: u64,
+    pub rays_shot: u64,
+    /// Pixel samples no record covered, gathered on the spot.
+    pub uncached_samples: u64,
+    /// The anchor method's statistics.
+    pub anchors: Option<AnchorStats>,
+}
+
+/// What a cached method carries from frame to frame: the cache and, for `anchors`, the
+/// anchors (owned by the session's frame state).
+pub struct CachedState<'a> {
+    pub cache: &'a mut IrradianceCache,
+    pub anchors: &'a mut Option<AnchorSet>,
+}
+
+/// Renders a frame with a cached method: prepare (photons, cache update and placement),
+/// then shade.
+pub fn render(
+    ctx: &FrameContext,
+    state: CachedState,
+    params: &GiParams,
+    method: CachedMethod,
+    visibility: &dyn Visibility,
+    spp: u32,
+    light_samples: u32,
+) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
+    let mut st = CachedStats::default();
+    let t = Instant::now();
+    let pm = PhotonMap::trace(
+        ctx.scene,
+        ctx.materials,
+        params.photons,
+        ctx.seed,
+        params.max_bounces,
+    );
+    st.photon_tracing = t.elapsed().as_secs_f64();
+    st.photons = pm.photons.len() as u64;
+    let t = Instant::now();
+    let pc = (method == CachedMethod::Precomputed)
+        .then(|| PrecomputedIrradiance::new(&pm, params.k as usize));
+    st.irradiance_estimation = t.elapsed().as_secs_f64();
+    let estimate = match &pc {
+        Some(pc) => GatherEstimate::Precomputed(pc),
+        None => GatherEstimate::PhotonMap(&pm, params.k as usize),
+    };
+    let mut gt = GatherTimings::default();
+    let cache = state.cache;
+    cache.set_error(params.cache.error);
+    if method == CachedMethod::Anchors {
+        st.anchors = Some(super::anchors::update(
+            ctx,
+            cache,
+            state.anchors,
+            &pm,
+            params,
+            visibility,
+            &mut gt,
+        )?);
+    } else {
+        prepare_brute_force(ctx, cache, &params.cache, estimate, &mut gt);
+    }
+    st.final_gathering = gt.final_gathering;
+    st.irradiance_estimation += gt.irradiance_estimation;
+    st.rays_shot = gt.rays;
+    st.caches = cache.len() as u64;
+
+    let t = Instant::now();
+    let shading = CachedShading {
+        cache,
+        estimate,
+        params: &params.cache,
+        light_samples,
+    };
+    let (img, rows) = super::render_pixels(ctx, spp, &shading);
+    let wall = t.elapsed().as_secs_f64();
+    let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
+    used.sort_unstable();
+    used.dedup();
+    cache.touch(&used, ctx.frame);
+    let (td, ti): (f64, f64) = rows
+        .iter()
+        .fold((0.0, 0.0), |(a, b), r| (a + r.t_direct, b + r.t_interp));
+    st.uncached_samples = rows.iter().map(|r| r.uncached).sum();
+    let frac = if td + ti > 0.0 { ti / (td + ti) } else { 0.0 };
+    st.cache_interpolation = wall * frac;
+    st.direct_lighting = wall * (1.0 - frac);
+    let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
+    Ok((img, counts, st))
+}
+
+/// The prepare phase of `brute-force` and `precomputed`: stale records dropped, every
+/// stratum of every record re-gathered, new records placed; every gather hit estimated.
+fn prepare_brute_force(
+    ctx: &FrameContext,
+    cache: &mut IrradianceCache,
+    cp: &CacheParams,
+    estimate: GatherEstimate,
+    gt: &mut GatherTimings,
+) {
+    let m = ctx.materials;
+    let radiance = |sp: &SurfacePoint| estimate.radiance(sp, m);
+    let mut brute =
+        |fp: &[f32], hits: Vec<Vec<GatherHit>>| gather::estimate_all(fp, hits, &radiance);
+    cache.expire(ctx.frame, cp.max_age);
+    cache.regather(ctx.scene, cp, ctx.frame, &mut brute, gt);
+    cache.place(
+        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, &mut brute, gt,
+    );
+}
+
+/// The shade phase of the cached methods: direct light by shadow rays, indirect light
+/// interpolated from the cache at the pixel centre's surface.
+pub struct CachedShading<'a> {
+    pub cache: &'a IrradianceCache,
+    pub estimate: GatherEstimate<'a>,
+    pub params: &'a CacheParams,
+    pub light_samples: u32,
+}
+
+/// Per-row state of the cached shading pass.
+#[derive(Default)]
+pub struct ShadeRow {
+    counts: RenderCounts,
+    /// Records that contributed to a pixel (§4.3: they stay alive).
+    used: Vec<u32>,
+    t_direct: f64,
+    t_interp: f64,
+    uncached: u64,
+}
+
+impl AsMut<RenderCounts> for ShadeRow {
+    fn as_mut(&mut self) -> &mut RenderCounts {
+        &mut self.counts
+    }
+}
+
+/// The surface a pixel's samples are grouped by: one prim, facing one way.
+type SurfaceKey = (Motion, u32);
+
+/// What the cache gave a surface of the pixel: irradiance, `anchor_id` AOV value, and the
+/// share of its strata re-traced this frame.
+#[derive(Clone, Copy)]
+struct CacheValue {
+    irradiance: Vec3,
+    anchor_id: u32,
+    reshot: f32,
+}
+
+/// Per-pixel state: the pixel centre's surface and the last interpolation.
+pub struct CachedPixel {
+    index: u32,
+    centre: Option<SurfacePoint>,
+    last: Option<(SurfaceKey, Vec3, CacheValue)>,
+}
+
+impl CachedShading<'_> {
+    fn key(ctx: &FrameContext, sp: &SurfacePoint) -> SurfaceKey {
+        (
+            sp.hit.motion,
+            ctx.scene.geometry(sp.hit.motion).shading[sp.hit.triangle as usize].prim,
+        )
+    }
+
+    /// Interpolates the cache at `at`. A sample off the placement grid may fall just outside
+    /// every record: the threshold is relaxed twice before gathering on the spot.
+    fn lookup(
+        &self,
+        ctx: &FrameContext,
+        at: &SurfacePoint,
+        pixel: u32,
+        row: &mut ShadeRow,
+    ) -> CacheValue {
+        let a = self.params.error;
+        let found = self
+            .cache
+            .interpolate(at.position, at.ns, a, &mut row.used)
+            .or_else(|| {
+                self.cache
+                    .interpolate(at.position, at.ns, 2.0 * a, &mut row.used)
+            });
+        match found {
+            Some(i) => CacheValue {
+                irradiance: i.irradiance,
+                anchor_id: AnchorId::aov(
+                    self.cache.records[i.dominant_record as usize].dominant_anchor,
+                ),
+                reshot: i.reshot,
+            },
+            None => {
+                row.uncached += 1;
+                let hits = gather::trace_strata(
+                    ctx.scene,
+                    at,
+                    gather::uncached_record_id(pixel),
+                    self.params,
+                );
+                let strata = (self.params.strata[0] * self.params.strata[1]) as f32;
+                let e = hits
+                    .iter()
+                    .filter_map(|h| h.sp.as_ref())
+                    .map(|sp| self.estimate.radiance(sp, ctx.materials))
+                    .sum::<Vec3>()
+                    * (PI / strata);
+                CacheValue {
+                    irradiance: e,
+                    anchor_id: 0,
+                    reshot: 1.0,
+                }
+            }
+        }
+    }
+}
+
+impl Shade for CachedShading<'_> {
+    type Row = ShadeRow;
+    type Pixel = CachedPixel;
+
+    /// The pixel centre's surface: interpolation for the pixel's samples on that surface
+    /// happens there, which does not move with the per-frame sample jitter.
+    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
+        let (co, cd) = ctx.scene.camera.ray(
+            (x as f32 + 0.5) / ctx.width as f32,
+            (y as f32 + 0.5) / ctx.height as f32,
+        );
+        CachedPixel {
+            index: y * ctx.width + x,
+            centre: trace(ctx.scene, co, cd),
+            last: None,
+        }
+    }
+
+    fn sample(
+        &self,
+        ctx: &FrameContext,
+        pixel: &mut CachedPixel,
+        row: &mut ShadeRow,
+        hit: &CameraHit,
+        acc: &mut Accumulator,
+    ) {
+        let sp = &hit.sp;
+        let t0 = Instant::now();
+        let albedo = sp.albedo(ctx.materials) * FRAC_1_PI;
+        let l_direct = albedo
+            * direct_irradiance(
+                ctx.scene,
+                sp,
+                hit.sampler,
+                hit.sample,
+                self.light_samples,
+                shading_dims().take(3),
+                &mut row.counts.shadow_rays,
+            );
+        let t1 = Instant::now();
+        // One interpolation per pixel and surface: the pixel's other samples on the same
+        // prim, facing the same way, reuse it (records are valid over several pixels).
+        let key = Self::key(ctx, sp);
+        let value = match pixel.last {
+            Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
+            _ => {
+                let at = match &pixel.centre {
+                    Some(c) if Self::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
+                    _ => sp,
+                };
+                let v = self.lookup(ctx, at, pixel.index, row);
+                pixel.last = Some((key, sp.ns, v));
+                v
+            }
+        };
+        acc.note_cache(value.anchor_id, value.reshot);
+        row.t_direct += (t1 - t0).as_secs_f64();
+        row.t_interp += t1.elapsed().as_secs_f64();
+        acc.hit(
+            hit.depth(ctx),
+            sp.emission(ctx.materials),
+            l_direct,
+            albedo * value.irradiance,
+        );
+    }
+}

@@ -1,0 +1,54 @@
+//! `direct`: emission and direct light only, no indirect light.
+
+use std::f32::consts::FRAC_1_PI;
+
+use glam::Vec3;
+
+use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade, shading_dims};
+use crate::interaction::direct_irradiance;
+
+/// Emission plus direct light by shadow rays at camera hits.
+pub struct Direct {
+    /// Emissive-triangle samples per camera sample.
+    pub light_samples: u32,
+}
+
+impl Shade for Direct {
+    type Row = RenderCounts;
+    type Pixel = ();
+
+    fn begin_pixel(&self, _: &FrameContext, _: u32, _: u32) {}
+
+    fn sample(
+        &self,
+        ctx: &FrameContext,
+        _: &mut (),
+        counts: &mut RenderCounts,
+        hit: &CameraHit,
+        acc: &mut Accumulator,
+    ) {
+        let sp = &hit.sp;
+        let e = direct_irradiance(
+            ctx.scene,
+            sp,
+            hit.sampler,
+            hit.sample,
+            self.light_samples,
+            shading_dims().take(3),
+            &mut counts.shadow_rays,
+        );
+        acc.hit(
+            hit.depth(ctx),
+            sp.emission(ctx.materials),
+            sp.albedo(ctx.materials) * FRAC_1_PI * e,
+            Vec3::ZERO,
+        );
+    }
+}
+
+/// Renders emission and direct lighting (`method: direct`) with `spp` samples per pixel.
+pub fn render(ctx: &FrameContext, spp: u32, light_samples: u32) -> (FrameImage, RenderCounts) {
+    let (mut img, rows) = super::render_pixels(ctx, spp, &Direct { light_samples });
+    img.drop_cache_aovs();
+    (img, RenderCounts::sum(&rows))
+}

@@ -1,0 +1,187 @@
+//! The film: one frame's AOVs, the per-pixel accumulation of camera samples, and the
+//! parallel row loop that fills it in an order independent of the thread count.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+/// The AOVs of one frame, row-major, top row first.
+#[derive(Debug, Clone, Default)]
+pub struct FrameImage {
+    pub width: u32,
+    pub height: u32,
+    /// Premultiplied RGBA: emission + direct (+ indirect, later), alpha = coverage.
+    pub beauty: Vec<[f32; 4]>,
+    pub direct: Vec<[f32; 3]>,
+    /// Light reflected at least twice (final gather or path tracing); zero for `direct`.
+    pub indirect: Vec<[f32; 3]>,
+    /// Camera-space depth along the view axis of the nearest hit; `f32::MAX` where nothing is hit.
+    pub depth: Vec<f32>,
+    /// Cached methods only (else `None`): `anchor_id` and `reshoot` AOVs, see [`Pixel`].
+    pub anchor_id: Option<Vec<u32>>,
+    pub reshoot: Option<Vec<f32>>,
+}
+
+impl FrameImage {
+    /// Drops the cache AOVs (for methods without a cache).
+    pub fn drop_cache_aovs(&mut self) {
+        self.anchor_id = None;
+        self.reshoot = None;
+    }
+}
+
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RenderCounts {
+    pub camera_rays: u64,
+    pub shadow_rays: u64,
+}
+
+/// One pixel's AOVs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Pixel {
+    pub beauty: [f32; 4],
+    pub direct: [f32; 3],
+    pub indirect: [f32; 3],
+    pub depth: f32,
+    /// Cached methods: id + 1 of the anchor feeding the first hit's dominant record (0: none).
+    pub anchor_id: u32,
+    /// Cached methods: weighted fraction of the contributing strata re-traced this frame.
+    pub reshoot: f32,
+}
+
+/// Sums a pixel's samples: emission, direct and indirect radiance, coverage and depth.
+#[derive(Debug, Clone, Copy)]
+pub struct Accumulator {
+    emission: Vec3,
+    direct: Vec3,
+    indirect: Vec3,
+    hits: f32,
+    depth: f32,
+    anchor: Option<u32>,
+    reshoot: f32,
+    cached: f32,
+}
+
+impl Default for Accumulator {
+    fn default() -> Self {
+        Accumulator {
+            emission: Vec3::ZERO,
+            direct: Vec3::ZERO,
+            indirect: Vec3::ZERO,
+            hits: 0.0,
+            depth: f32::MAX,
+            anchor: None,
+            reshoot: 0.0,
+            cached: 0.0,
+        }
+    }
+}
+
+impl Accumulator {
+    /// A camera sample that hit a surface at view-axis `depth`.
+    pub fn hit(&mut self, depth: f32, emission: Vec3, direct: Vec3, indirect: Vec3) {
+        self.hits += 1.0;
+        self.depth = self.depth.min(depth);
+        self.emission += emission;
+        self.direct += direct;
+        self.indirect += indirect;
+    }
+
+    /// Adds radiance to a sample already counted by [`Accumulator::hit`].
+    pub fn add(&mut self, direct: Vec3, indirect: Vec3) {
+        self.direct += direct;
+        self.indirect += indirect;
+    }
+
+    /// Records what the cache gave a sample: the anchor id (kept from the first sample) and
+    /// the fraction of its strata re-traced this frame.
+    pub fn note_cache(&mut self, anchor_id: u32, reshoot: f32) {
+        self.anchor.get_or_insert(anchor_id);
+        self.reshoot += reshoot;
+        self.cached += 1.0;
+    }
+
+    /// The box-filtered pixel over `spp` samples (misses count as black, transparent).
+    /// A non-finite sum (which no valid input produces) becomes black rather than poisoning
+    /// compositing.
+    pub fn finish(&self, spp: u32) -> Pixel {
+        let inv = 1.0 / spp as f32;
+        let f = |v: Vec3| {
+            let v = v * inv;
+            if v.is_finite() { v } else { Vec3::ZERO }
+        };
+        let (e, d, i) = (f(self.emission), f(self.direct), f(self.indirect));
+        let b = e + d + i;
+        Pixel {
+            beauty: [b.x, b.y, b.z, self.hits * inv],
+            direct: d.to_array(),
+            indirect: i.to_array(),
+            depth: self.depth,
+            anchor_id: self.anchor.unwrap_or(0),
+            reshoot: if self.cached > 0.0 {
+                self.reshoot / self.cached
+            } else {
+                0.0
+            },
+        }
+    }
+}
+
+/// Renders every pixel with `shade(x, y, row_state)` in parallel rows, joined in order, so
+/// the image does not depend on the thread count. Returns the image and each row's state.
+pub fn render_rows<S: Default + Send>(
+    width: u32,
+    height: u32,
+    shade: impl Fn(u32, u32, &mut S) -> Pixel + Sync,
+) -> (FrameImage, Vec<S>) {
+    let rows: Vec<(Vec<Pixel>, S)> = (0..height)
+        .into_par_iter()
+        .map(|y| {
+            let mut state = S::default();
+            let row = (0..width).map(|x| shade(x, y, &mut state)).collect();
+            (row, state)
+        })
+        .collect();
+    let n = (width * height) as usize;
+    let mut img = FrameImage {
+        width,
+        height,
+        beauty: Vec::with_capacity(n),
+        direct: Vec::with_capacity(n),
+        indirect: Vec::with_capacity(n),
+        depth: Vec::with_capacity(n),
+        anchor_id: Some(Vec::with_capacity(n)),
+        reshoot: Some(Vec::with_capacity(n)),
+    };
+    let mut states = Vec::with_capacity(height as usize);
+    let (mut ids, mut reshoot) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    for (row, state) in rows {
+        for p in row {
+            img.beauty.push(p.beauty);
+            img.direct.push(p.direct);
+            img.indirect.push(p.indirect);
+            img.depth.push(p.depth);
+            ids.push(p.anchor_id);
+            reshoot.push(p.reshoot);
+        }
+        states.push(state);
+    }
+    img.anchor_id = Some(ids);
+    img.reshoot = Some(reshoot);
+    (img, states)
+}
+
+impl AsMut<RenderCounts> for RenderCounts {
+    fn as_mut(&mut self) -> &mut RenderCounts {
+        self
+    }
+}
+
+impl RenderCounts {
+    pub fn sum<'a>(all: impl IntoIterator<Item = &'a RenderCounts>) -> RenderCounts {
+        all.into_iter()
+            .fold(RenderCounts::default(), |a, c| RenderCounts {
+                camera_rays: a.camera_rays + c.camera_rays,
+                shadow_rays: a.shadow_rays + c.shadow_rays,
+            })
+    }
+}

@@ -1,0 +1,210 @@
+//! The integrators: how each method turns a frame's scene into pixels (DESIGN.md, Methods).
+//!
+//! One pixel loop serves them all ([`render_pixels`]): per pixel, camera samples jittered
+//! over the pixel from the camera stream, a camera ray each, and the method's [`Shade`] at
+//! every hit, accumulated into the AOVs of [`film`]. The methods:
+//!
+//! - [`direct`]: emission and direct light only.
+//! - [`path`]: unbiased path tracing with next-event estimation, the reference.
+//! - [`cached`]: photon map + irradiance cache, shading from the cache. Its prepare phase is
+//!   the method's: `brute-force` re-gathers every stratum of every record each frame and
+//!   estimates radiance at each gather hit from the k nearest photons (the paper's Table 1,
+//!   left column); `precomputed` reads irradiance precomputed at a quarter of the photons
+//!   (Christensen 1999, the paper's Figure 7); `anchors` is [`anchors`], the paper's method
+//!   (§3–§4.3, Pseudocode 2).
+//!
+//! All share seeds, the photon sequence and the cache placement, so they compare like for
+//! like.
+
+pub mod anchors;
+pub mod cached;
+pub mod direct;
+pub mod film;
+pub mod path;
+
+use clap::ValueEnum;
+use glam::Vec3;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::anchor::AnchorParams;
+use crate::cache::CacheParams;
+use crate::interaction::{Materials, SurfacePoint, trace};
+use crate::sampling::{Dims, Sampler, Stream};
+use crate::scene::FrameScene;
+pub use film::{Accumulator, FrameImage, Pixel, RenderCounts};
+
+/// Settings of the photon-mapping methods ([`GiParams::preset`] gives the presets).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GiParams {
+    /// Photons emitted per frame.
+    pub photons: u32,
+    /// Photons in each irradiance estimate.
+    pub k: u32,
+    /// Photon bounces at most.
+    pub max_bounces: u32,
+    pub cache: CacheParams,
+    /// `anchors`: anchor density and reuse heuristics.
+    pub anchors: AnchorParams,
+    /// `path-trace`: samples per pixel and maximum path length.
+    pub path_samples: u32,
+    pub path_depth: u32,
+}
+
+/// Named speed/accuracy presets.
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema, ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+#[value(rename_all = "kebab-case")]
+pub enum Preset {
+    /// Fast previews: few photons, coarse caches.
+    Draft,
+    /// The default: the balance the README's measurements recommend.
+    #[default]
+    Production,
+    /// The paper's 1,800 gather rays per record.
+    Final,
+}
+
+impl GiParams {
+    pub fn preset(p: Preset) -> Self {
+        let cache = CacheParams::default();
+        match p {
+            Preset::Draft => GiParams {
+                photons: 50_000,
+                k: 32,
+                max_bounces: 8,
+                cache: CacheParams {
+                    strata: [8, 24],
+                    error: 0.4,
+                    min_spacing_px: 3.0,
+                    max_spacing_px: 32.0,
+                    ..cache
+                },
+                anchors: AnchorParams::default(),
+                path_samples: 64,
+                path_depth: 8,
+            },
+            Preset::Production => GiParams {
+                photons: 200_000,
+                k: 64,
+                max_bounces: 12,
+                cache,
+                anchors: AnchorParams::default(),
+                path_samples: 256,
+                path_depth: 12,
+            },
+            Preset::Final => GiParams {
+                photons: 800_000,
+                k: 100,
+                max_bounces: 16,
+                cache: CacheParams {
+                    strata: [30, 60],
+                    error: 0.15,
+                    min_spacing_px: 1.5,
+                    max_spacing_px: 16.0,
+                    ..cache
+                },
+                anchors: AnchorParams::default(),
+                path_samples: 1024,
+                path_depth: 16,
+            },
+        }
+    }
+}
+
+/// The frame a method renders: the scene at the frame's time, its materials, the image and
+/// the numbers every random number derives from.
+#[derive(Clone, Copy)]
+pub struct FrameContext<'a> {
+    pub scene: &'a FrameScene,
+    pub materials: Materials<'a>,
+    pub width: u32,
+    pub height: u32,
+    pub seed: u32,
+    pub frame: i32,
+}
+
+/// Dimensions of the camera stream ([`Stream::Camera`]): the first two jitter the sample in
+/// the pixel; a method's shading takes the following ones from [`shading_dims`].
+const DIM_JITTER: u32 = 0;
+
+/// The camera stream's dimensions from the first one a method's shading may use.
+pub fn shading_dims() -> Dims {
+    let mut d = Dims::new();
+    d.take(DIM_JITTER + 2);
+    d
+}
+
+/// A camera sample that met a surface.
+pub struct CameraHit<'a> {
+    /// The pixel's sample stream and this sample's index in it.
+    pub sampler: &'a Sampler,
+    pub sample: u32,
+    /// The camera ray's direction.
+    pub dir: Vec3,
+    pub sp: SurfacePoint,
+}
+
+impl CameraHit<'_> {
+    /// Depth along the camera's view axis (the `Z` AOV).
+    pub fn depth(&self, ctx: &FrameContext) -> f32 {
+        self.sp.hit.t * self.dir.dot(ctx.scene.camera.forward)
+    }
+}
+
+/// What a method does with the camera samples of one pixel: its shade phase.
+pub trait Shade: Sync {
+    /// State of one row of pixels (counters, timings, what the row used).
+    type Row: Default + Send + AsMut<RenderCounts>;
+    /// State of one pixel, set up before its first sample.
+    type Pixel;
+
+    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> Self::Pixel;
+
+    /// Shades one camera hit into `acc`.
+    fn sample(
+        &self,
+        ctx: &FrameContext,
+        pixel: &mut Self::Pixel,
+        row: &mut Self::Row,
+        hit: &CameraHit,
+        acc: &mut Accumulator,
+    );
+}
+
+/// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
+/// parallel, the image independent of the thread count. Returns the image and each row's
+/// state.
+pub fn render_pixels<S: Shade>(
+    ctx: &FrameContext,
+    spp: u32,
+    method: &S,
+) -> (FrameImage, Vec<S::Row>) {
+    let (w, h) = (ctx.width, ctx.height);
+    film::render_rows(w, h, |x, y, row: &mut S::Row| {
+        let sampler = Sampler::new(ctx.seed, ctx.frame, Stream::Camera, y * w + x);
+        let mut acc = Accumulator::default();
+        let mut pixel = method.begin_pixel(ctx, x, y);
+        for s in 0..spp {
+            let [jx, jy] = sampler.get2(s, DIM_JITTER);
+            let (o, d) = ctx
+                .scene
+                .camera
+                .ray((x as f32 + jx) / w as f32, (y as f32 + jy) / h as f32);
+            row.as_mut().camera_rays += 1;
+            let Some(sp) = trace(ctx.scene, o, d) else {
+                continue;
+            };
+            let hit = CameraHit {
+                sampler: &sampler,
+                sample: s,
+                dir: d,
+                sp,
+            };
+            method.sample(ctx, &mut pixel, row, &hit, &mut acc);
+        }
+        acc.finish(spp)
+    })
+}

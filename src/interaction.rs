@@ -1,0 +1,203 @@
+//! Where light meets a surface: the shading point a ray finds ([`SurfacePoint`]), tracing,
+//! and direct light from every light with shadow rays ([`direct_irradiance`]). Every
+//! method builds on these, at camera hits and at final-gather hits alike.
+//!
+//! Units: pixel values are radiance in the scene's light units (glTF: candela for point and
+//! spot lights, lux for directional lights, nits for emission), so a point light of
+//! intensity `I` over a white Lambertian plane gives `I·cosθ/(π r²)`.
+
+use glam::{Vec2, Vec3};
+
+use crate::accel::{Hit, barycentric, offset_of};
+use crate::sampling::Sampler;
+use crate::scene::{FrameScene, LightKind, Material, PunctualLight, Texture};
+
+/// What the renderer needs of the scene's materials.
+#[derive(Clone, Copy)]
+pub struct Materials<'a> {
+    pub materials: &'a [Material],
+    pub textures: &'a [Texture],
+}
+
+/// A shading point on a surface, oriented towards the incoming ray.
+#[derive(Debug, Clone, Copy)]
+pub struct SurfacePoint {
+    pub position: Vec3,
+    /// Geometric normal on the side the ray came from.
+    pub ng: Vec3,
+    /// Interpolated shading normal, on the same side as `ng`.
+    pub ns: Vec3,
+    pub uv: Vec2,
+    /// Distance to move ray origins off this surface.
+    pub offset: f32,
+    pub material: u32,
+    /// True if the ray hit the front (counter-clockwise) face.
+    pub front: bool,
+    pub hit: Hit,
+}
+
+impl SurfacePoint {
+    pub fn new(frame: &FrameScene, hit: Hit, origin: Vec3, dir: Vec3) -> Self {
+        let g = frame.geometry(hit.motion);
+        let tri = &g.triangles[hit.triangle as usize];
+        let sh = &g.shading[hit.triangle as usize];
+        let position = origin + dir * hit.t;
+        let b = barycentric(tri, position);
+        let w = 1.0 - b.x - b.y;
+        let n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
+        let front = n.dot(dir) < 0.0;
+        let ng = if front { n } else { -n };
+        let ns =
+            (sh.normals[0] * w + sh.normals[1] * b.x + sh.normals[2] * b.y).normalize_or_zero();
+        let ns = if ns.dot(ng) < 0.0 { -ns } else { ns };
+        let ns = if ns == Vec3::ZERO { ng } else { ns };
+        SurfacePoint {
+            position,
+            ng,
+            ns,
+            uv: sh.uvs[0] * w + sh.uvs[1] * b.x + sh.uvs[2] * b.y,
+            offset: offset_of(tri),
+            material: sh.material,
+            front,
+            hit,
+        }
+    }
+
+    /// Origin for rays leaving on the ray's side of the surface.
+    pub fn spawn(&self) -> Vec3 {
+        self.position + self.ng * self.offset
+    }
+
+    pub fn albedo(&self, m: Materials) -> Vec3 {
+        m.materials[self.material as usize].albedo(self.uv, m.textures)
+    }
+
+    /// Emitted radiance towards the ray's origin.
+    pub fn emission(&self, m: Materials) -> Vec3 {
+        let mat = &m.materials[self.material as usize];
+        if self.front || mat.double_sided {
+            mat.emission
+        } else {
+            Vec3::ZERO
+        }
+    }
+}
+
+/// The surface the ray `o + t·d` meets first, if any.
+pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
+    frame
+        .accel
+        .closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            o,
+            d,
+            f32::INFINITY,
+        )
+        .map(|h| SurfacePoint::new(frame, h, o, d))
+}
+
+/// Irradiance at `x` from one punctual light, shadow ray included (`KHR_lights_punctual`).
+fn punctual_irradiance(
+    frame: &FrameScene,
+    x: &SurfacePoint,
+    l: &PunctualLight,
+    shadow_rays: &mut u64,
+) -> Vec3 {
+    let o = x.spawn();
+    let (wi, dist, e) = match l.kind {
+        LightKind::Directional => (-l.direction, f32::INFINITY, l.intensity),
+        LightKind::Point | LightKind::Spot { .. } => {
+            let d = l.position - o;
+            let r2 = d.length_squared();
+            let r = r2.sqrt();
+            if !(r > 0.0) || l.range.is_some_and(|range| r > range) {
+                return Vec3::ZERO;
+            }
+            let wi = d / r;
+            let mut e = l.intensity / r2;
+            if let LightKind::Spot { inner, outer } = l.kind {
+                // The extension's smooth cone falloff between the outer and inner angles.
+                let cd = l.direction.dot(-wi);
+                let (co, ci) = (outer.cos(), inner.cos());
+                let s = ((cd - co) / (ci - co).max(1e-4)).clamp(0.0, 1.0);
+                e *= s * s;
+            }
+            (wi, r * (1.0 - 1e-6), e)
+        }
+    };
+    let cos = x.ns.dot(wi);
+    if cos <= 0.0 || x.ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
+        return Vec3::ZERO;
+    }
+    *shadow_rays += 1;
+    if frame
+        .accel
+        .occluded(&frame.static_geometry, &frame.dynamic_geometry, o, wi, dist)
+    {
+        return Vec3::ZERO;
+    }
+    e * cos
+}
+
+/// Irradiance at `x` from all lights: punctual lights exactly, emissive triangles by
+/// `n` QMC samples (`sampler` indices `index·n ..`, dimensions `dim..dim+3`).
+pub fn direct_irradiance(
+    frame: &FrameScene,
+    x: &SurfacePoint,
+    sampler: &Sampler,
+    index: u32,
+    n: u32,
+    dim: u32,
+    shadow_rays: &mut u64,
+) -> Vec3 {
+    let mut e = Vec3::ZERO;
+    for l in &frame.lights {
+        e += punctual_irradiance(frame, x, l, shadow_rays);
+    }
+    if frame.emitters.list.is_empty() {
+        return e;
+    }
+    let o = x.spawn();
+    let mut area = Vec3::ZERO;
+    for j in 0..n {
+        let i = index * n + j;
+        let Some((k, p_pick)) = frame.emitters.pick(sampler.get(i, dim)) else {
+            break;
+        };
+        let em = &frame.emitters.list[k];
+        let g = frame.geometry(em.motion);
+        let tri = &g.triangles[em.triangle as usize];
+        // Uniform point on the triangle (Shirley's square-root parameterisation).
+        let [u1, u2] = sampler.get2(i, dim + 1);
+        let su = u1.sqrt();
+        let y = Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
+        let ny = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
+        let d = y - o;
+        let r2 = d.length_squared();
+        if !(r2 > 0.0) {
+            continue;
+        }
+        let r = r2.sqrt();
+        let wi = d / r;
+        let cos_x = x.ns.dot(wi);
+        let cos_y = -ny.dot(wi);
+        let cos_y = if em.double_sided { cos_y.abs() } else { cos_y };
+        if cos_x <= 0.0 || cos_y <= 0.0 || x.ng.dot(wi) <= 0.0 {
+            continue;
+        }
+        *shadow_rays += 1;
+        let tmax = r - 2.0 * offset_of(tri);
+        if tmax > 0.0
+            && frame
+                .accel
+                .occluded(&frame.static_geometry, &frame.dynamic_geometry, o, wi, tmax)
+        {
+            continue;
+        }
+        // E = L_e cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
+        // neither tiny nor huge scenes leave f32's range: (area / r²) is scale-free.
+        area += em.radiance * (cos_x * cos_y * (em.area / r2) / p_pick);
+    }
+    e + area / n as f32
+}

@@ -1,0 +1,29 @@
+//! What a render keeps from one frame to the next (DESIGN.md, one owner of what survives):
+//! [`FrameState`], everything a frame hands to the next and nothing else, serialisable so
+//! that it can be written to disk and read back; and [`Resources`], what a render holds
+//! that is not state — the static set with its BVH and the visibility implementation (a
+//! GPU device, perhaps) — and is rebuilt, not saved.
+
+use serde::{Deserialize, Serialize};
+
+use crate::anchor::AnchorSet;
+use crate::cache::IrradianceCache;
+use crate::scene::StaticSet;
+use crate::visibility::Visibility;
+
+/// The state a frame hands to the next: the irradiance cache (records with their strata and
+/// the record id counter) and, for the anchor method, the anchors (with their kd-tree, the
+/// photon→anchor links, the previous frame's photon paths and the free-slot list).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrameState {
+    pub cache: IrradianceCache,
+    pub anchors: Option<AnchorSet>,
+}
+
+/// What a render holds besides its state.
+pub struct Resources {
+    /// Static prims and their BVH, built once per render.
+    pub statics: StaticSet,
+    /// Where the anchor method's visibility detection runs (§3.2).
+    pub visibility: Box<dyn Visibility>,
+}

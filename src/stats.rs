@@ -1,0 +1,118 @@
+//! The stats JSON written beside each frame (`schemas/stats.schema.json`, generated from
+//! these types): the paper's Table 1 rows as per-stage timings, counts of what was traced
+//! and stored, and memory.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Per-stage wall-clock seconds (`schemas/stats.schema.json`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct Timings {
+    /// Evaluating animation, skinning and morphing of dynamic prims.
+    pub scene_evaluation: f64,
+    /// Evaluating static prims and building their BVH (first frame of a render only).
+    pub static_bvh: f64,
+    pub dynamic_bvh: f64,
+    /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
+    /// gather hits, or precomputation), final gathering (tracing gather rays) and cache
+    /// interpolation (shading from the cache). Zero for methods without that stage.
+    pub photon_tracing: f64,
+    pub irradiance_estimation: f64,
+    pub final_gathering: f64,
+    pub cache_interpolation: f64,
+    /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).
+    pub visibility: f64,
+    /// Direct light at camera hits (for `path-trace`: the whole path tracing).
+    pub direct_lighting: f64,
+    pub output: f64,
+    pub total: f64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct Counts {
+    pub triangles_static: u64,
+    pub triangles_dynamic: u64,
+    pub punctual_lights: u64,
+    pub emissive_triangles: u64,
+    pub pixels: u64,
+    pub camera_rays: u64,
+    pub shadow_rays: u64,
+    /// Photons stored this frame.
+    pub photons: u64,
+    /// Irradiance cache records in use this frame.
+    pub caches: u64,
+    /// Final-gather rays traced this frame.
+    pub rays_shot: u64,
+    /// Pixel samples no cache record covered, gathered on the spot.
+    pub uncached_samples: u64,
+    /// Final-gather rays traced this frame by records that existed before it (for
+    /// `anchors`, the re-shot strata; for brute force, every stratum of every record).
+    pub rays_reshot: u64,
+    /// `anchors`: anchors whose irradiance was estimated again this frame.
+    pub anchors_reestimated: u64,
+    /// Live anchors, and anchors created this frame (`anchors`).
+    pub anchors: u64,
+    pub anchors_created: u64,
+}
+
+/// Live anchors by how many strata link them (the paper's Figure 8).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct AnchorReuse {
+    #[serde(rename = "1")]
+    pub one: u64,
+    #[serde(rename = "2-10")]
+    pub two_to_10: u64,
+    #[serde(rename = "11-100")]
+    pub eleven_to_100: u64,
+    #[serde(rename = "101-1000")]
+    pub hundred_one_to_1000: u64,
+    #[serde(rename = ">1000")]
+    pub over_1000: u64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct Memory {
+    pub geometry_static_bytes: u64,
+    pub geometry_dynamic_bytes: u64,
+    pub bvh_static_bytes: u64,
+    pub bvh_dynamic_bytes: u64,
+    pub image_bytes: u64,
+    /// Cached methods: bytes of one stratum and of all strata; `anchors`: of one anchor and
+    /// of all anchors.
+    pub bytes_per_stratum: u64,
+    pub strata_bytes: u64,
+    pub bytes_per_anchor: u64,
+    pub anchors_bytes: u64,
+}
+
+/// The stats JSON written beside each frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct FrameStats {
+    pub frame: i32,
+    /// Animation time of the frame in seconds.
+    pub time: f32,
+    pub method: String,
+    /// `anchors` only: the visibility implementation that ran.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub visibility: Option<String>,
+    pub resolution: [u32; 2],
+    pub samples_per_pixel: u32,
+    pub timings_s: Timings,
+    pub counts: Counts,
+    pub memory: Memory,
+    /// `anchors` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub anchor_reuse: Option<AnchorReuse>,
+}
+
+/// The JSON Schema of the stats files (`schemas/stats.schema.json`), generated from
+/// [`FrameStats`].
+pub fn schema() -> schemars::Schema {
+    let mut s = schemars::schema_for!(FrameStats);
+    s.insert("$id".into(), "anchorage/stats.schema.json".into());
+    s.insert(
+        "title".into(),
+        "anchorage per-frame stats (NAME.####.json)".into(),
+    );
+    s
+}
