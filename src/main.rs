@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anchorage::job::{FrameRange, Job, Overrides, VisibilityChoice};
 use anchorage::pipeline::{self, Progress, RenderOptions};
-use anchorage::{Error, inspect};
+use anchorage::{Error, compare, inspect};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -51,7 +51,7 @@ enum Command {
     /// Describe a scene (.gltf/.glb) or a job: prims with tags and why, lights, cameras, time range.
     Inspect { path: PathBuf },
     /// Render frames with several methods and presets and measure time, error against a
-    /// reference, and flicker: a table on stdout, compare.json and compare.png.
+    /// reference, and flicker: a table on stdout, compare.json, compare.png and compare.svg.
     Compare {
         job: PathBuf,
         /// Comma-separated methods to measure.
@@ -74,7 +74,7 @@ enum Command {
         /// Inclusive frame range `A-B` (or one frame `A`), overriding the job's `frames`.
         #[arg(long)]
         frames: Option<String>,
-        /// Where compare.json and compare.png go (default: the job's output directory).
+        /// Where compare.json, compare.png and compare.svg go (default: the job's output directory).
         #[arg(long)]
         out: Option<PathBuf>,
         /// Where visibility detection runs, overriding the job's `render.visibility`.
@@ -203,70 +203,24 @@ fn run(cli: Cli) -> Result<(), Error> {
                 visibility,
             };
             let job = Job::load(&job, &overrides)?;
-            let preset = |s: &str| {
-                anchorage::compare::parse_preset(s).ok_or_else(|| {
-                    Error::input("--presets", s, "expected draft, production or final")
-                })
+            let flags = compare::plan::Flags {
+                methods,
+                presets,
+                vary,
+                reference,
+                reference_preset,
             };
-            let presets = match presets {
-                Some(p) => p
-                    .split(',')
-                    .map(|s| preset(s.trim()))
-                    .collect::<Result<Vec<_>, _>>()?,
-                None => vec![job.method.preset],
-            };
-            let mut settings = vec![None];
-            for v in &vary {
-                let list = anchorage::compare::Setting::parse_list(v).ok_or_else(|| {
-                    Error::input(
-                        "--vary",
-                        v,
-                        "expected photons=, k=, strata=MxN, error=, anchor_k= or visibility= with comma-separated values",
-                    )
-                })?;
-                settings.extend(list.into_iter().map(Some));
-            }
-            if !vary.is_empty() {
-                settings.remove(0);
-            }
-            let mut variants = Vec::new();
-            for m in methods.split(',') {
-                let method = parse_method(m.trim())?;
-                for &preset in &presets {
-                    for setting in &settings {
-                        let v = anchorage::compare::Variant {
-                            method,
-                            preset,
-                            setting: *setting,
-                        };
-                        if let Some(s) = setting {
-                            // A swept value is checked like a job-file value.
-                            let mut j = job.clone();
-                            j.method.preset = preset;
-                            s.apply(&mut j);
-                            j.method.validate(&job.path)?;
-                        }
-                        variants.push(v);
-                    }
-                }
-            }
-            let reference = anchorage::compare::Variant {
-                method: parse_method(&reference)?,
-                preset: match reference_preset {
-                    Some(p) => preset(&p)?,
-                    None => job.method.preset,
-                },
-                setting: None,
-            };
+            let plan = compare::Plan::new(&flags, &job)?;
             let scene = job.load_scene()?;
             anchorage::output::check_output_dir(&job.out_dir)?;
-            let report = anchorage::compare::compare(&job, &scene, &variants, &reference)?;
-            print!("{}", anchorage::compare::table(&report));
-            anchorage::compare::write(&job.out_dir, &report)?;
+            let report = compare::run(&job, &scene, &plan)?;
+            print!("{}", compare::table(&report));
+            let [json, png, svg] = compare::write(&job.out_dir, &report)?;
             println!(
-                "wrote {} and {}",
-                job.out_dir.join("compare.json").display(),
-                job.out_dir.join("compare.png").display()
+                "wrote {}, {} and {}",
+                json.display(),
+                png.display(),
+                svg.display()
             );
             Ok(())
         }

@@ -67,6 +67,15 @@ pub enum Preset {
     Final,
 }
 
+impl Preset {
+    /// The preset's name as the job file and the command line spell it.
+    pub fn name(self) -> String {
+        self.to_possible_value()
+            .map(|v| v.get_name().to_string())
+            .unwrap_or_default()
+    }
+}
+
 impl GiParams {
     pub fn preset(p: Preset) -> Self {
         let cache = CacheParams::default();

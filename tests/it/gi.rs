@@ -308,4 +308,6 @@ fn compare_reports_every_method_with_a_table_json_and_plot() {
     assert!(by("brute-force")["rays_shot_per_frame"].as_f64().unwrap() > 0.0);
     let png = std::fs::read(dir.path().join("out/compare.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
+    let svg = std::fs::read_to_string(dir.path().join("out/compare.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("brute-force/draft"));
 }

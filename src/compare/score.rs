@@ -1,0 +1,269 @@
+//! Scores a variant's run against the reference's: RMS relative error and temporal flicker,
+//! on the beauty and on the `indirect` AOV alone (where the methods differ), and the
+//! per-stage seconds of the paper's Table 1.
+
+use serde::Serialize;
+
+use super::Variant;
+use super::run::Run;
+use crate::job::{Job, Method};
+use crate::integrator::FrameImage;
+use crate::stats::FrameStats;
+
+/// Scores of one variant.
+#[derive(Debug, Clone, Serialize)]
+pub struct Score {
+    pub label: String,
+    pub method: String,
+    pub preset: String,
+    pub seconds_per_frame_median: f64,
+    pub rms_error_pct: f64,
+    pub rms_error_pct_per_frame: Vec<f64>,
+    /// `None` when no pixel stays unchanged in the reference (or one frame only).
+    pub flicker_pct: Option<f64>,
+    pub flicker_pixels: u64,
+    /// The same two scores on the `indirect` AOV alone, where the methods differ.
+    pub indirect_rms_error_pct: f64,
+    pub indirect_flicker_pct: Option<f64>,
+    pub rays_shot_per_frame: f64,
+    /// Final-gather rays traced per second of final-gathering time, per worker thread.
+    pub gather_rays_per_s_per_core: Option<f64>,
+    /// Median per-stage seconds (the paper's Table 1 rows).
+    pub table1_s: Table1,
+    pub caches_per_frame: f64,
+    pub photons_per_frame: f64,
+    /// `anchors` after its first frame: median share of all strata re-traced, in %.
+    pub reshot_pct: Option<f64>,
+    /// `anchors` after its first frame: median visibility seconds per 10 000 records.
+    pub visibility_s_per_10k_caches: Option<f64>,
+}
+
+/// Median seconds per stage.
+#[derive(Debug, Clone, Serialize)]
+pub struct Table1 {
+    pub photon_tracing: f64,
+    pub irradiance_estimation: f64,
+    pub final_gathering: f64,
+    pub cache_interpolation: f64,
+    pub direct_lighting: f64,
+    pub visibility: f64,
+    pub total: f64,
+}
+
+/// Everything `compare` measured: the tables print it, `compare.json` is it.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub job: String,
+    pub frames: [i32; 2],
+    pub resolution: [u32; 2],
+    pub reference: String,
+    pub reference_seconds_per_frame_median: f64,
+    /// The reference's own flicker (its noise) on the same pixels.
+    pub reference_flicker_pct: Option<f64>,
+    pub reference_indirect_flicker_pct: Option<f64>,
+    pub results: Vec<Score>,
+}
+
+/// Which AOV a score reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Aov {
+    Beauty,
+    Indirect,
+}
+
+fn rgb(img: &FrameImage, aov: Aov, i: usize) -> [f32; 3] {
+    match aov {
+        Aov::Beauty => [img.beauty[i][0], img.beauty[i][1], img.beauty[i][2]],
+        Aov::Indirect => img.indirect[i],
+    }
+}
+
+/// `100·sqrt(Σ(a − r)² / Σ r²)` over the RGB of `aov`.
+pub fn rms_error_pct(a: &FrameImage, r: &FrameImage, aov: Aov) -> f64 {
+    let (mut d, mut n) = (0.0f64, 0.0f64);
+    for i in 0..r.beauty.len() {
+        let (p, q) = (rgb(a, aov, i), rgb(r, aov, i));
+        for k in 0..3 {
+            d += (p[k] as f64 - q[k] as f64).powi(2);
+            n += (q[k] as f64).powi(2);
+        }
+    }
+    if n > 0.0 { 100.0 * (d / n).sqrt() } else { 0.0 }
+}
+
+/// Flicker of `run` over pixels where the reference keeps its depth and coverage between
+/// consecutive frames: (flicker %, pixels compared).
+pub fn flicker_pct(run: &[FrameImage], reference: &[FrameImage], aov: Aov) -> (Option<f64>, u64) {
+    let (mut change, mut level, mut count) = (0.0f64, 0.0f64, 0u64);
+    for f in 1..run.len().min(reference.len()) {
+        let (r0, r1) = (&reference[f - 1], &reference[f]);
+        for i in 0..r1.beauty.len() {
+            // Depth is the nearest of the pixel's jittered samples, which move from frame to
+            // frame: 1 % tells an unchanged surface from a moving object.
+            let same_z = (r0.depth[i] - r1.depth[i]).abs() <= 1e-2 * r1.depth[i].abs().max(1e-30);
+            if !same_z || r0.beauty[i][3] != r1.beauty[i][3] || r1.beauty[i][3] == 0.0 {
+                continue;
+            }
+            let (m0, m1, r) = (
+                rgb(&run[f - 1], aov, i),
+                rgb(&run[f], aov, i),
+                rgb(r1, aov, i),
+            );
+            for k in 0..3 {
+                change += (m1[k] as f64 - m0[k] as f64).abs();
+                level += r[k] as f64;
+            }
+            count += 1;
+        }
+    }
+    (
+        (count > 0 && level > 0.0).then(|| 100.0 * change / level),
+        count,
+    )
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        0.0
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Scores `r`, the run of variant `v`, against the reference's run.
+pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
+    let error = |aov| -> Vec<f64> {
+        r.images
+            .iter()
+            .zip(&reference.images)
+            .map(|(a, b)| rms_error_pct(a, b, aov))
+            .collect()
+    };
+    let (per_frame, indirect) = (error(Aov::Beauty), error(Aov::Indirect));
+    let (flicker, pixels) = flicker_pct(&r.images, &reference.images, Aov::Beauty);
+    let (ind_flicker, _) = flicker_pct(&r.images, &reference.images, Aov::Indirect);
+    let n = r.stats.len().max(1) as f64;
+    let med = |f: &dyn Fn(&FrameStats) -> f64| median(r.stats.iter().map(f).collect());
+    let per_frame_mean = |f: &dyn Fn(&FrameStats) -> f64| r.stats.iter().map(f).sum::<f64>() / n;
+    let strata_per_record = r.strata_per_record;
+    // Anchors in steady state: every frame after the first.
+    let steady = |f: &dyn Fn(&FrameStats) -> f64| {
+        (v.method == Method::Anchors && r.stats.len() > 1)
+            .then(|| median(r.stats[1..].iter().map(f).collect()))
+    };
+    Score {
+        label: v.label(),
+        method: v.method.name(),
+        preset: v.preset.name(),
+        seconds_per_frame_median: med(&|s| s.timings_s.total),
+        rms_error_pct: mean(&per_frame),
+        rms_error_pct_per_frame: per_frame,
+        flicker_pct: flicker,
+        flicker_pixels: pixels,
+        indirect_rms_error_pct: mean(&indirect),
+        indirect_flicker_pct: ind_flicker,
+        rays_shot_per_frame: per_frame_mean(&|s| s.counts.rays_shot as f64),
+        gather_rays_per_s_per_core: {
+            let (rays, secs) = r.stats.iter().fold((0.0, 0.0), |(a, b), s| {
+                (
+                    a + s.counts.rays_shot as f64,
+                    b + s.timings_s.final_gathering,
+                )
+            });
+            (secs > 0.0).then(|| rays / secs / rayon::current_num_threads() as f64)
+        },
+        table1_s: Table1 {
+            photon_tracing: med(&|s| s.timings_s.photon_tracing),
+            irradiance_estimation: med(&|s| s.timings_s.irradiance_estimation),
+            final_gathering: med(&|s| s.timings_s.final_gathering),
+            cache_interpolation: med(&|s| s.timings_s.cache_interpolation),
+            direct_lighting: med(&|s| s.timings_s.direct_lighting),
+            visibility: med(&|s| s.timings_s.visibility),
+            total: med(&|s| s.timings_s.total),
+        },
+        reshot_pct: steady(&|s| {
+            let strata = s.counts.caches as f64 * strata_per_record;
+            100.0 * s.counts.rays_reshot as f64 / strata.max(1.0)
+        }),
+        visibility_s_per_10k_caches: steady(&|s| {
+            s.timings_s.visibility / (s.counts.caches as f64).max(1.0) * 1e4
+        }),
+        caches_per_frame: per_frame_mean(&|s| s.counts.caches as f64),
+        photons_per_frame: per_frame_mean(&|s| s.counts.photons as f64),
+    }
+}
+
+/// The report of `job`: the reference's own numbers, then `results` in plan order.
+pub(super) fn report(job: &Job, reference: &Variant, run: &Run, results: Vec<Score>) -> Report {
+    let (ref_flicker, _) = flicker_pct(&run.images, &run.images, Aov::Beauty);
+    let (ref_ind_flicker, _) = flicker_pct(&run.images, &run.images, Aov::Indirect);
+    Report {
+        job: job.path.display().to_string(),
+        frames: [job.frames.start, job.frames.end],
+        resolution: [job.width, job.height],
+        reference: reference.label(),
+        reference_seconds_per_frame_median: median(
+            run.stats.iter().map(|s| s.timings_s.total).collect(),
+        ),
+        reference_flicker_pct: ref_flicker,
+        reference_indirect_flicker_pct: ref_ind_flicker,
+        results,
+    }
+}
+
+/// A report of `n` made-up variants: three methods swept over `n / 3` photon counts.
+#[cfg(test)]
+pub(super) fn sample(n: usize) -> Report {
+    let methods = ["anchors", "brute-force", "precomputed"];
+    let results = (0..n)
+        .map(|i| {
+            let (method, step) = (methods[i % 3], (i / 3) as f64);
+            let label = format!("{method}/production photons={}", 10_000 * (i / 3 + 1));
+            Score {
+                label,
+                method,
+                preset: "production",
+                seconds_per_frame_median: 0.2 * (1.0 + step) * (1.0 + (i % 3) as f64),
+                rms_error_pct: 1.9 + 0.01 * (i % 3) as f64 - 0.01 * step,
+                rms_error_pct_per_frame: vec![1.9; 3],
+                flicker_pct: Some(0.5),
+                flicker_pixels: 700,
+                indirect_rms_error_pct: 5.1 + 0.4 * (i % 3) as f64 - 0.05 * step,
+                indirect_flicker_pct: None,
+                rays_shot_per_frame: 1e6,
+                gather_rays_per_s_per_core: Some(2e6),
+                table1_s: Table1 {
+                    photon_tracing: 0.01,
+                    irradiance_estimation: 0.02,
+                    final_gathering: 0.1,
+                    cache_interpolation: 0.01,
+                    direct_lighting: 0.02,
+                    visibility: 0.0,
+                    total: 0.2,
+                },
+                caches_per_frame: 800.0,
+                photons_per_frame: 5e4,
+                reshot_pct: None,
+                visibility_s_per_10k_caches: None,
+            }
+        })
+        .collect();
+    Report {
+        job: "examples/room/compare.json".into(),
+        frames: [0, 2],
+        resolution: [128, 96],
+        reference: "path-trace/final".into(),
+        reference_seconds_per_frame_median: 12.0,
+        reference_flicker_pct: Some(0.1),
+        reference_indirect_flicker_pct: None,
+        results,
+    }
+}
