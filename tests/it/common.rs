@@ -1,7 +1,9 @@
-//! Shared helpers: paths, jobs built in code, and an independent glTF accessor reader.
+//! Shared helpers: paths, temporary directories, jobs built in code, and an independent glTF
+//! accessor reader.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use anchorage::job::{Job, JobFile, Overrides};
 use anchorage::pipeline::{self, FrameStats};
@@ -14,6 +16,45 @@ pub fn root() -> PathBuf {
 
 pub fn shared_scene(rel: &str) -> PathBuf {
     root().join("../shared/scenes").join(rel)
+}
+
+/// A fresh directory under the system's temporary directory, removed with its contents when
+/// dropped. std only on purpose: a test-only crate such as `tempfile` turns on features of
+/// crates the renderer shares (`bitflags/std`), and Cargo then builds ~15 of them a second
+/// time for `cargo test --release` after `cargo build --release`.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Creates a `TempDir` named after the process, a counter and the clock.
+pub fn tempdir() -> TempDir {
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    let base = std::env::temp_dir();
+    loop {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        let dir = base.join(format!(
+            "anchorage-test-{}-{n}-{nanos:08x}",
+            std::process::id()
+        ));
+        match std::fs::create_dir(&dir) {
+            Ok(()) => return TempDir(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => panic!("cannot create {}: {e}", dir.display()),
+        }
+    }
 }
 
 pub fn example_job() -> PathBuf {
@@ -209,8 +250,8 @@ pub fn small_room_job(dir: &Path, method: &str) -> PathBuf {
 /// Renders `job` with `args` on 1 and 2 threads and asserts that every file in `names` (paths
 /// under the output directory) has the same bytes both times.
 pub fn assert_same_bytes_with_1_and_2_threads(job: &Path, args: &[&str], names: &[String]) {
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
+    let a = tempdir();
+    let b = tempdir();
     for (dir, threads) in [(&a, "1"), (&b, "2")] {
         let mut all = vec![
             "render",

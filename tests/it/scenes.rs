@@ -191,7 +191,7 @@ fn skinned_mesh_deforms_over_time() {
 /// Morph targets: a scene written here with one target animated from weight 0 to 1.
 #[test]
 fn morph_target_weights_move_vertices() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
     let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]); // positions
     bin.extend(floats(&[0.0, 0.0, 2.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0])); // target: +2 z
