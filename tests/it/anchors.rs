@@ -86,7 +86,7 @@ fn anchors_agree_with_brute_force_frame_by_frame() {
 /// match brute force throughout: no stale links, no leaks.
 #[test]
 fn an_occluder_that_comes_and_goes() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let f = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
     // floor 0..3, wall 4..7, plate 8..11 (positions); indices; times; translations.
     let mut bin = f(&[
@@ -202,7 +202,7 @@ fn an_occluder_that_comes_and_goes() {
 
 #[test]
 fn anchors_give_the_same_bytes_with_one_and_two_threads() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let job = small_room_job(dir.path(), "anchors");
     let names: Vec<String> = (4..=7).map(|f| format!("job.{f:04}.exr")).collect();
     assert_same_bytes_with_1_and_2_threads(&job, &["--frames", "4-7"], &names);

@@ -83,7 +83,7 @@ fn assert_bad_input(dir: &Path, code: i32, err: &str, culprits: &[&str]) {
 
 #[test]
 fn truncated_glb_is_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let glb = std::fs::read(shared_scene("bevy_Cubes/Cubes.glb")).unwrap();
     std::fs::write(dir.path().join("s.glb"), &glb[..glb.len() / 2]).unwrap();
     let (code, err) = render_in(dir.path(), &JOB.replace("s.gltf", "s.glb"), &[]);
@@ -92,7 +92,7 @@ fn truncated_glb_is_bad_input() {
 
 #[test]
 fn missing_bin_is_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     std::fs::copy(
         shared_scene("BoxAnimated/BoxAnimated.gltf"),
         dir.path().join("s.gltf"),
@@ -109,7 +109,7 @@ fn missing_bin_is_bad_input() {
 
 #[test]
 fn nan_positions_are_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     std::fs::write(
         dir.path().join("s.gltf"),
         tiny_gltf(
@@ -129,7 +129,7 @@ fn nan_positions_are_bad_input() {
 
 #[test]
 fn out_of_range_indices_are_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     std::fs::write(
         dir.path().join("s.gltf"),
         tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 7]),
@@ -141,7 +141,7 @@ fn out_of_range_indices_are_bad_input() {
 
 #[test]
 fn degenerate_triangles_are_skipped_with_a_warning() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     // A good triangle, a collinear one, and one with a repeated vertex.
     let p = [
         -1.0, -1.0, 0.0, 1.0, -1.0, 0.0, 0.0, 1.0, 0.0, 2.0, 2.0, 0.0, 3.0, 3.0, 0.0,
@@ -162,7 +162,7 @@ fn degenerate_triangles_are_skipped_with_a_warning() {
 
 #[test]
 fn unknown_job_keys_are_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     std::fs::write(
         dir.path().join("s.gltf"),
         tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
@@ -187,7 +187,7 @@ fn unknown_job_keys_are_bad_input() {
 
 #[test]
 fn frame_range_outside_the_animation_is_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     for f in ["BoxAnimated.gltf", "BoxAnimated0.bin"] {
         std::fs::copy(shared_scene("BoxAnimated").join(f), dir.path().join(f)).unwrap();
     }
@@ -209,7 +209,7 @@ fn frame_range_outside_the_animation_is_bad_input() {
 
 #[test]
 fn unwritable_output_directory_is_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     std::fs::write(
         dir.path().join("s.gltf"),
         tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
@@ -225,7 +225,7 @@ fn unwritable_output_directory_is_bad_input() {
 
 #[test]
 fn required_unsupported_extension_is_bad_input() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let g = tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2])
         .replace(r#""extensionsUsed":["KHR_lights_punctual"]"#, r#""extensionsUsed":["KHR_lights_punctual","KHR_draco_mesh_compression","EXT_fancy"],"extensionsRequired":["KHR_draco_mesh_compression"]"#);
     std::fs::write(dir.path().join("s.gltf"), &g).unwrap();
@@ -267,7 +267,7 @@ fn same_bytes_with_one_and_two_threads() {
 
 #[test]
 fn stats_json_has_the_documented_keys() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let o = run(&[
         "render",
         example_job().to_str().unwrap(),

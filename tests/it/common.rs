@@ -1,7 +1,9 @@
-//! Shared helpers: paths, jobs built in code, and an independent glTF accessor reader.
+//! Shared helpers: paths, the third-party scenes, temporary directories, jobs built in code,
+//! and an independent glTF accessor reader.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use anchorage::integrator::FrameImage;
 use anchorage::job::{Job, JobFile, Overrides};
@@ -13,8 +15,199 @@ pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
+/// Where the third-party scenes live: `$ANCHORAGE_SCENES` if set (a relative path is taken
+/// from the repository root), else `../shared/scenes` beside the repository.
+pub fn scenes_dir() -> PathBuf {
+    match std::env::var_os("ANCHORAGE_SCENES") {
+        Some(dir) => root().join(dir),
+        None => root().join("../shared/scenes"),
+    }
+}
+
+/// The command that fetches the third-party scenes, for messages.
+pub const FETCH_SCENES: &str = "scripts/fetch-scenes.sh";
+
+/// A third-party scene file or folder, `FOLDER/FILE` or `FOLDER` (e.g.
+/// `BoxAnimated/BoxAnimated.gltf`): the one way the tests locate these scenes.
+/// Panics with one message saying how to fetch them when any file that
+/// `tests/scenes/manifest.tsv` lists for the folder is missing, or the folder is not listed.
 pub fn shared_scene(rel: &str) -> PathBuf {
-    root().join("../shared/scenes").join(rel)
+    let dir = scenes_dir();
+    let folder = rel.split('/').next().unwrap_or(rel);
+    let files: Vec<ManifestEntry> = scene_manifest()
+        .into_iter()
+        .filter(|e| e.scene == folder)
+        .collect();
+    assert!(
+        !files.is_empty(),
+        "scene folder {folder} is not listed in tests/scenes/manifest.tsv: add its files, \
+         source and licence there"
+    );
+    let missing: Vec<String> = files
+        .iter()
+        .map(|e| dir.join(&e.scene).join(&e.file))
+        .filter(|p| !p.is_file())
+        .map(|p| p.display().to_string())
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "third-party scene {rel} is missing ({}): run `{FETCH_SCENES}` to fetch the scenes \
+         into {}, where the tests read them ($ANCHORAGE_SCENES, else ../shared/scenes beside \
+         the repository)",
+        missing.join(", "),
+        dir.display(),
+    );
+    dir.join(rel)
+}
+
+/// One row of `tests/scenes/manifest.tsv`: a file of a third-party scene and where it is from.
+#[derive(Clone, Debug)]
+pub struct ManifestEntry {
+    pub scene: String,
+    pub file: String,
+    pub sha256: String,
+    pub bytes: u64,
+    pub repository: String,
+    pub commit: String,
+    pub path: String,
+    pub licence: String,
+}
+
+/// The rows of `tests/scenes/manifest.tsv` (tab-separated; `#` starts a comment line).
+pub fn scene_manifest() -> Vec<ManifestEntry> {
+    let path = root().join("tests/scenes/manifest.tsv");
+    let text = std::fs::read_to_string(&path).expect("tests/scenes/manifest.tsv is readable");
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'))
+        .map(|(i, l)| {
+            let f: Vec<&str> = l.split('\t').collect();
+            assert_eq!(
+                f.len(),
+                8,
+                "manifest.tsv line {}: 8 tab-separated fields",
+                i + 1
+            );
+            ManifestEntry {
+                scene: f[0].into(),
+                file: f[1].into(),
+                sha256: f[2].into(),
+                bytes: f[3]
+                    .parse()
+                    .unwrap_or_else(|_| panic!("manifest.tsv line {}: bytes", i + 1)),
+                repository: f[4].into(),
+                commit: f[5].into(),
+                path: f[6].into(),
+                licence: f[7].into(),
+            }
+        })
+        .collect()
+}
+
+/// SHA-256 (FIPS 180-4) of `data`, as lowercase hex. Here so that the manifest check needs
+/// no extra crate (see `TempDir`).
+pub fn sha256_hex(data: &[u8]) -> String {
+    const K: [u32; 64] = [
+        0x428a2f98, 0x71374491, 0xb5c0fbcf, 0xe9b5dba5, 0x3956c25b, 0x59f111f1, 0x923f82a4,
+        0xab1c5ed5, 0xd807aa98, 0x12835b01, 0x243185be, 0x550c7dc3, 0x72be5d74, 0x80deb1fe,
+        0x9bdc06a7, 0xc19bf174, 0xe49b69c1, 0xefbe4786, 0x0fc19dc6, 0x240ca1cc, 0x2de92c6f,
+        0x4a7484aa, 0x5cb0a9dc, 0x76f988da, 0x983e5152, 0xa831c66d, 0xb00327c8, 0xbf597fc7,
+        0xc6e00bf3, 0xd5a79147, 0x06ca6351, 0x14292967, 0x27b70a85, 0x2e1b2138, 0x4d2c6dfc,
+        0x53380d13, 0x650a7354, 0x766a0abb, 0x81c2c92e, 0x92722c85, 0xa2bfe8a1, 0xa81a664b,
+        0xc24b8b70, 0xc76c51a3, 0xd192e819, 0xd6990624, 0xf40e3585, 0x106aa070, 0x19a4c116,
+        0x1e376c08, 0x2748774c, 0x34b0bcb5, 0x391c0cb3, 0x4ed8aa4a, 0x5b9cca4f, 0x682e6ff3,
+        0x748f82ee, 0x78a5636f, 0x84c87814, 0x8cc70208, 0x90befffa, 0xa4506ceb, 0xbef9a3f7,
+        0xc67178f2,
+    ];
+    let mut h: [u32; 8] = [
+        0x6a09e667, 0xbb67ae85, 0x3c6ef372, 0xa54ff53a, 0x510e527f, 0x9b05688c, 0x1f83d9ab,
+        0x5be0cd19,
+    ];
+    // Padding (§5.1.1): a 1 bit, zeros, then the message length in bits, to a 64-byte multiple.
+    let mut msg = data.to_vec();
+    msg.push(0x80);
+    while msg.len() % 64 != 56 {
+        msg.push(0);
+    }
+    msg.extend_from_slice(&((data.len() as u64) * 8).to_be_bytes());
+    for block in msg.chunks_exact(64) {
+        let mut w = [0u32; 64];
+        for (t, word) in block.chunks_exact(4).enumerate() {
+            w[t] = u32::from_be_bytes(word.try_into().unwrap());
+        }
+        for t in 16..64 {
+            let s0 = w[t - 15].rotate_right(7) ^ w[t - 15].rotate_right(18) ^ (w[t - 15] >> 3);
+            let s1 = w[t - 2].rotate_right(17) ^ w[t - 2].rotate_right(19) ^ (w[t - 2] >> 10);
+            w[t] = w[t - 16]
+                .wrapping_add(s0)
+                .wrapping_add(w[t - 7])
+                .wrapping_add(s1);
+        }
+        let [mut a, mut b, mut c, mut d, mut e, mut f, mut g, mut hh] = h;
+        for t in 0..64 {
+            let s1 = e.rotate_right(6) ^ e.rotate_right(11) ^ e.rotate_right(25);
+            let ch = (e & f) ^ (!e & g);
+            let t1 = hh
+                .wrapping_add(s1)
+                .wrapping_add(ch)
+                .wrapping_add(K[t])
+                .wrapping_add(w[t]);
+            let s0 = a.rotate_right(2) ^ a.rotate_right(13) ^ a.rotate_right(22);
+            let maj = (a & b) ^ (a & c) ^ (b & c);
+            let t2 = s0.wrapping_add(maj);
+            hh = g;
+            g = f;
+            f = e;
+            e = d.wrapping_add(t1);
+            d = c;
+            c = b;
+            b = a;
+            a = t1.wrapping_add(t2);
+        }
+        for (x, y) in h.iter_mut().zip([a, b, c, d, e, f, g, hh]) {
+            *x = x.wrapping_add(y);
+        }
+    }
+    h.iter().map(|x| format!("{x:08x}")).collect()
+}
+
+/// A fresh directory under the system's temporary directory, removed with its contents when
+/// dropped. std only on purpose: a test-only crate such as `tempfile` turns on features of
+/// crates the renderer shares (`bitflags/std`), and Cargo then builds ~15 of them a second
+/// time for `cargo test --release` after `cargo build --release`.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Creates a `TempDir` named after the process, a counter and the clock.
+pub fn tempdir() -> TempDir {
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    let base = std::env::temp_dir();
+    loop {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        let dir = base.join(format!(
+            "anchorage-test-{}-{n}-{nanos:08x}",
+            std::process::id()
+        ));
+        match std::fs::create_dir(&dir) {
+            Ok(()) => return TempDir(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => panic!("cannot create {}: {e}", dir.display()),
+        }
+    }
 }
 
 pub fn example_job() -> PathBuf {
@@ -210,8 +403,8 @@ pub fn small_room_job(dir: &Path, method: &str) -> PathBuf {
 /// Renders `job` with `args` on 1 and 2 threads and asserts that every file in `names` (paths
 /// under the output directory) has the same bytes both times.
 pub fn assert_same_bytes_with_1_and_2_threads(job: &Path, args: &[&str], names: &[String]) {
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
+    let a = tempdir();
+    let b = tempdir();
     for (dir, threads) in [(&a, "1"), (&b, "2")] {
         let mut all = vec![
             "render",

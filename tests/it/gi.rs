@@ -81,7 +81,7 @@ fn mean(img: &anchorage::integrator::FrameImage, f: impl Fn(usize) -> f32) -> f6
 
 #[test]
 fn furnace_indirect_matches_closed_form() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let (rho, le) = (0.5f32, 2.0f32);
     let want = (rho * rho * le / (1.0 - rho)) as f64;
     for (method, extra, tol) in [
@@ -120,7 +120,7 @@ fn furnace_indirect_matches_closed_form() {
 /// the expected flux, so a closed room stores Φ·Σ_{n=0}^{B} ρⁿ.
 #[test]
 fn photon_power_is_conserved() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let (rho, bounces) = (0.6f32, 30u32);
     // At a millimetre scale too: a BVH or intersection test that lets rays through shared
     // edges loses photons out of the closed room (regression: 3 % were lost at 1e-3).
@@ -190,7 +190,7 @@ fn brute_force_is_close_to_the_path_traced_reference() {
 
 #[test]
 fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let base = render(
         &furnace(
             dir.path(),
@@ -248,7 +248,7 @@ fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
 
 #[test]
 fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let job = small_room_job(dir.path(), "brute-force");
     for method in ["brute-force", "precomputed"] {
         let names: Vec<String> = (4..=6).map(|f| format!("job.{f:04}.exr")).collect();
@@ -262,7 +262,7 @@ fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
 
 #[test]
 fn compare_reports_every_method_with_a_table_json_and_plot() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let job = dir.path().join("job.json");
     std::fs::write(
         &job,

@@ -87,7 +87,7 @@ fn check_against(
 /// E = I cosθ / r², L = ρ E / π (KHR_lights_punctual: intensity in candela).
 #[test]
 fn point_light_over_a_plane_matches_i_cos_over_r2() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let (i, h) = (100.0f32, 2.0f32);
     let job = plane_job(
         dir.path(),
@@ -116,7 +116,7 @@ fn point_light_over_a_plane_matches_i_cos_over_r2() {
 /// A directional light of E lux at 60° from the normal: E cos 60° everywhere.
 #[test]
 fn directional_light_gives_e_cos_theta() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     // Rotating −Z by −30° about X gives (0, −sin 30°, −cos 30°): 60° from the plane's normal.
     let a = (-30.0f32).to_radians() / 2.0;
     let q = [a.sin(), 0.0, 0.0, a.cos()];
@@ -136,7 +136,7 @@ fn directional_light_gives_e_cos_theta() {
 /// A spot light: full intensity inside the inner cone, none outside the outer.
 #[test]
 fn spot_light_cone() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let a = (-90.0f32).to_radians() / 2.0; // point straight down
     let job = plane_job(
         dir.path(),
@@ -159,7 +159,7 @@ fn spot_light_cone() {
 /// Light intensities from 1e-6 to 1e6 give finite AOVs that scale linearly.
 #[test]
 fn extreme_intensities_stay_finite_and_linear() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let mut images = Vec::new();
     for i in [1e-6f32, 1.0, 1e6] {
         let job = plane_job(
@@ -196,7 +196,7 @@ fn extreme_intensities_stay_finite_and_linear() {
 /// A point-lit scene scaled by s: distances grow by s, so radiance falls by 1/s².
 #[test]
 fn point_lit_scene_scales_as_inverse_square() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let light = r#"{"type":"point","intensity":100}"#;
     let base = render(
         &plane_job(

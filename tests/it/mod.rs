@@ -3,6 +3,7 @@ mod cli;
 pub mod common;
 mod gi;
 mod gpu;
+mod layout;
 mod lighting;
 mod python;
 mod scenes;

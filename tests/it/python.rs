@@ -12,7 +12,7 @@ use anchorage::geom::Motion;
 #[test]
 fn exr_channels_and_values_read_back_with_openexr() {
     let Some(py) = python() else { return };
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let job = example_job();
     let out = run(&[
         "render",
@@ -96,7 +96,7 @@ fn exr_channels_and_values_read_back_with_openexr() {
 #[test]
 fn usd_stage_through_usd2gltf_matches_usd_transforms_and_renders() {
     let Some(py) = python() else { return };
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let o = Command::new(&py)
         .arg(root().join("tests/python/usd_stage.py"))
         .arg(dir.path())

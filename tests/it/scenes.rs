@@ -194,7 +194,7 @@ fn skinned_mesh_deforms_over_time() {
 /// Morph targets: a scene written here with one target animated from weight 0 to 1.
 #[test]
 fn morph_target_weights_move_vertices() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
     let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]); // positions
     bin.extend(floats(&[0.0, 0.0, 2.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0])); // target: +2 z
@@ -265,4 +265,99 @@ fn layer_transform_applies_to_prims() {
         Vec3::new(10.0, 0.0, 0.0),
     ) * a;
     assert!(b.abs_diff_eq(expect, 1e-5));
+}
+
+#[test]
+fn sha256_matches_the_standard_test_vectors() {
+    // FIPS 180-4 examples: empty, one block, two blocks.
+    assert_eq!(
+        sha256_hex(b""),
+        "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+    );
+    assert_eq!(
+        sha256_hex(b"abc"),
+        "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+    );
+    assert_eq!(
+        sha256_hex(b"abcdbcdecdefdefgefghfghighijhijkijkljklmklmnlmnomnopnopq"),
+        "248d6a61d20638b8e5c026930c3e6039a33ce45964ff2167f6ecedd419db06c1"
+    );
+}
+
+/// Every scene file the tests and the Sponza bench read is in `tests/scenes/manifest.tsv`,
+/// and every row says where the file comes from.
+#[test]
+fn scene_manifest_lists_every_scene_read_with_its_source() {
+    let manifest = scene_manifest();
+    let listed =
+        |folder: &str, file: &str| manifest.iter().any(|e| e.scene == folder && e.file == file);
+    for rel in SCENES {
+        let (folder, file) = rel.split_once('/').unwrap();
+        assert!(
+            listed(folder, file),
+            "{rel} is not in tests/scenes/manifest.tsv"
+        );
+    }
+    let bench: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("benches/sponza/job.json")).unwrap(),
+    )
+    .unwrap();
+    for layer in bench["scene"].as_array().unwrap() {
+        let path = layer["path"].as_str().unwrap();
+        if let Some((_, rel)) = path.split_once("shared/scenes/") {
+            let (folder, file) = rel.split_once('/').unwrap();
+            assert!(
+                listed(folder, file),
+                "bench scene {rel} is not in the manifest"
+            );
+        }
+    }
+    let hex = |s: &str, n: usize| s.len() == n && s.bytes().all(|b| b.is_ascii_hexdigit());
+    for e in &manifest {
+        let what = format!("{}/{}", e.scene, e.file);
+        assert!(hex(&e.sha256, 64), "{what}: sha256");
+        assert!(hex(&e.commit, 40), "{what}: commit");
+        assert!(e.repository.split('/').count() == 2, "{what}: repository");
+        assert!(
+            !e.path.is_empty() && !e.licence.is_empty(),
+            "{what}: path, licence"
+        );
+    }
+}
+
+/// The scenes found on disk are the ones the manifest pins, byte for byte.
+#[test]
+fn scene_files_match_the_manifest_hashes() {
+    let dir = scenes_dir();
+    if !dir.is_dir() {
+        eprintln!(
+            "skipped: no scenes at {} (fetch them with `{FETCH_SCENES}`)",
+            dir.display()
+        );
+        return;
+    }
+    let mut wrong = Vec::new();
+    for e in scene_manifest() {
+        let path = dir.join(&e.scene).join(&e.file);
+        match std::fs::read(&path) {
+            Err(err) => wrong.push(format!("{}: {err}", path.display())),
+            Ok(bytes) if bytes.len() as u64 != e.bytes => wrong.push(format!(
+                "{}: {} bytes, the manifest says {}",
+                path.display(),
+                bytes.len(),
+                e.bytes
+            )),
+            Ok(bytes) if sha256_hex(&bytes) != e.sha256 => wrong.push(format!(
+                "{}: SHA-256 differs from the manifest",
+                path.display()
+            )),
+            Ok(_) => {}
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "third-party scenes differ from tests/scenes/manifest.tsv (fetch them again with \
+         `{FETCH_SCENES}`):\n  {}",
+        wrong.join("\n  ")
+    );
 }

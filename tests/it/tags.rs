@@ -10,7 +10,7 @@ use anchorage::scene::{Scene, TagSource};
 /// Every node instances one triangle. `extras` are JSON per node; `animated` is the node an
 /// animation translates.
 fn scene(extras: [&str; 4], animated: usize, tags: &str) -> anchorage::Result<Scene> {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempdir();
     let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
     let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
     bin.extend(floats(&[0.0, 1.0]));
