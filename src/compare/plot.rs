@@ -403,8 +403,31 @@ mod tests {
     use super::*;
     use crate::compare::score::sample as report;
 
+    /// A fresh directory under the system's temporary directory, removed on drop.
+    struct TempDir(std::path::PathBuf);
+
+    impl TempDir {
+        fn new(name: &str) -> TempDir {
+            let p =
+                std::env::temp_dir().join(format!("anchorage-plot-{name}-{}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&p);
+            std::fs::create_dir_all(&p).unwrap();
+            TempDir(p)
+        }
+
+        fn path(&self) -> &std::path::Path {
+            &self.0
+        }
+    }
+
+    impl Drop for TempDir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
     fn check_written(n: usize) -> image::RgbImage {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = TempDir::new(&format!("n{n}"));
         let [png, svg] = write(dir.path(), &report(n)).unwrap();
         assert_eq!(png, dir.path().join("compare.png"));
         let svg = std::fs::read_to_string(svg).unwrap();
@@ -442,7 +465,7 @@ mod tests {
         }
         r.results[0].rms_error_pct = 0.0;
         r.results[1].indirect_rms_error_pct = f64::NAN;
-        let dir = tempfile::tempdir().unwrap();
+        let dir = TempDir::new("degenerate");
         write(dir.path(), &r).unwrap();
     }
 

@@ -4,12 +4,12 @@ use std::time::Instant;
 
 use super::Variant;
 use crate::error::Result;
-use crate::job::Job;
 use crate::integrator::FrameImage;
+use crate::job::Job;
 use crate::pipeline;
+use crate::scene::Scene;
 use crate::session::FrameState;
 use crate::stats::FrameStats;
-use crate::scene::Scene;
 
 /// One variant's frames and their statistics, first frame first.
 pub(super) struct Run {

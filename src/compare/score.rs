@@ -6,8 +6,8 @@ use serde::Serialize;
 
 use super::Variant;
 use super::run::Run;
-use crate::job::{Job, Method};
 use crate::integrator::FrameImage;
+use crate::job::{Job, Method};
 use crate::stats::FrameStats;
 
 /// Scores of one variant.
@@ -229,8 +229,8 @@ pub(super) fn sample(n: usize) -> Report {
             let label = format!("{method}/production photons={}", 10_000 * (i / 3 + 1));
             Score {
                 label,
-                method,
-                preset: "production",
+                method: method.into(),
+                preset: "production".into(),
                 seconds_per_frame_median: 0.2 * (1.0 + step) * (1.0 + (i % 3) as f64),
                 rms_error_pct: 1.9 + 0.01 * (i % 3) as f64 - 0.01 * step,
                 rms_error_pct_per_frame: vec![1.9; 3],
