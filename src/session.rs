@@ -20,6 +20,18 @@ pub struct FrameState {
     pub anchors: Option<AnchorSet>,
 }
 
+impl FrameState {
+    /// The state as bytes (postcard's compact binary encoding of the serde types).
+    pub fn encode(&self) -> Vec<u8> {
+        postcard::to_stdvec(self).expect("frame state serialises: no map keys, no I/O")
+    }
+
+    /// The state from [`FrameState::encode`]'s bytes.
+    pub fn decode(bytes: &[u8]) -> Result<FrameState, postcard::Error> {
+        postcard::from_bytes(bytes)
+    }
+}
+
 /// What a render holds besides its state.
 pub struct Resources {
     /// Static prims and their BVH, built once per render.
