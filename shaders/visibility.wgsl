@@ -1,7 +1,7 @@
 // Visibility maps (the paper's §3.2): which strata of each static cache record may see a
 // dynamic triangle. One invocation per (record, triangle) pair rasterises the triangle's
 // cap onto the record's stratum grid and sets one bit per covered stratum. This mirrors
-// `cover` and `sphere_cap` in src/gi/visibility.rs line by line; the module doc there
+// `cover` and `sphere_cap` in src/visibility/mod.rs line by line; the module doc there
 // states the rule and why it is conservative.
 
 struct Params {

@@ -58,13 +58,12 @@ impl Attacher<'_> {
         let photon = self.pm.nearest(x).filter(|&i| {
             (self.pm.photons[i].position - x).length() <= self.params.photon_radius * self.scale
         });
-        if let Some(ph) = photon {
-            if let Some(a) = set.photon_links[ph]
-                && set.anchor(a).is_live()
-                && self.acceptable(set, a, sp, albedo)
-            {
-                return a;
-            }
+        if let Some(ph) = photon
+            && let Some(a) = set.photon_links[ph]
+            && set.anchor(a).is_live()
+            && self.acceptable(set, a, sp, albedo)
+        {
+            return a;
         }
         // §3.3.1: the nearest anchors within D_max; three rejections create a new one.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));

@@ -71,6 +71,9 @@ fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f3
     (sin2, phi)
 }
 
+/// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the jitter
+/// inside the stratum depends on the id only, so a record's rays are the same in every
+/// frame.
 pub fn stratum_dir(ns: Vec3, id: u32, p: &CacheParams, s: u32) -> Vec3 {
     let [m, n] = p.strata;
     let (t, b) = basis(ns);
@@ -125,10 +128,6 @@ pub fn trace_strata(
         .map(|s| trace_stratum(frame, sp, id, p, s))
         .collect()
 }
-
-/// Completes a record from its strata: irradiance E = π/(MN) Σ L, harmonic-mean radius
-/// clamped to [min, max] footprints, and gradients.
-#[allow(clippy::too_many_arguments)] // a record's every part
 
 /// The id under which a pixel sample that no record covers gathers on the spot: apart from
 /// every record's, so its rays are its own.

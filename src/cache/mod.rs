@@ -250,9 +250,7 @@ impl IrradianceCache {
             .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
     }
 
-    /// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the
-    /// jitter inside the stratum depends on the id only, so a record's rays are the same in
-    /// every frame.
+    /// Re-gathers every record (brute force: every frame, every stratum).
     pub fn regather(
         &mut self,
         frame: &FrameScene,

@@ -112,6 +112,9 @@ impl Record {
     }
 }
 
+/// Completes a record from its strata: irradiance E = π/(MN) Σ L, harmonic-mean radius
+/// clamped to [min, max] footprints, and gradients.
+#[allow(clippy::too_many_arguments)] // a record's every part
 pub fn finish_record(
     sp: &SurfacePoint,
     motion: Motion,
@@ -171,8 +174,6 @@ pub fn finish_record(
         dominant_anchor: None,
     }
 }
-
-/// Re-gathers every record (brute force: every frame, every stratum).
 
 impl Record {
     /// The record re-made from new strata at its own position; id, footprint and last use

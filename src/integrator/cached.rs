@@ -11,13 +11,11 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::anchors::AnchorStats;
-use super::{
-    Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade, shading_dims,
-};
+use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
 use crate::geom::Motion;
-use crate::interaction::{Materials, SurfacePoint, direct_irradiance, trace};
+use crate::interaction::{Materials, SurfacePoint, trace};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
@@ -299,17 +297,7 @@ impl Shade for CachedShading<'_> {
     ) {
         let sp = &hit.sp;
         let t0 = Instant::now();
-        let albedo = sp.albedo(ctx.materials) * FRAC_1_PI;
-        let l_direct = albedo
-            * direct_irradiance(
-                ctx.scene,
-                sp,
-                hit.sampler,
-                hit.sample,
-                self.light_samples,
-                shading_dims().take(3),
-                &mut row.counts.shadow_rays,
-            );
+        let l_direct = hit.direct_light(ctx, self.light_samples, &mut row.counts.shadow_rays);
         let t1 = Instant::now();
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
@@ -329,6 +317,7 @@ impl Shade for CachedShading<'_> {
         acc.note_cache(value.anchor_id, value.reshot);
         row.t_direct += (t1 - t0).as_secs_f64();
         row.t_interp += t1.elapsed().as_secs_f64();
+        let albedo = sp.albedo(ctx.materials) * FRAC_1_PI;
         acc.hit(
             hit.depth(ctx),
             sp.emission(ctx.materials),

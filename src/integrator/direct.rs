@@ -1,11 +1,8 @@
 //! `direct`: emission and direct light only, no indirect light.
 
-use std::f32::consts::FRAC_1_PI;
-
 use glam::Vec3;
 
-use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade, shading_dims};
-use crate::interaction::direct_irradiance;
+use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade};
 
 /// Emission plus direct light by shadow rays at camera hits.
 pub struct Direct {
@@ -27,22 +24,9 @@ impl Shade for Direct {
         hit: &CameraHit,
         acc: &mut Accumulator,
     ) {
-        let sp = &hit.sp;
-        let e = direct_irradiance(
-            ctx.scene,
-            sp,
-            hit.sampler,
-            hit.sample,
-            self.light_samples,
-            shading_dims().take(3),
-            &mut counts.shadow_rays,
-        );
-        acc.hit(
-            hit.depth(ctx),
-            sp.emission(ctx.materials),
-            sp.albedo(ctx.materials) * FRAC_1_PI * e,
-            Vec3::ZERO,
-        );
+        let direct = hit.direct_light(ctx, self.light_samples, &mut counts.shadow_rays);
+        let emission = hit.sp.emission(ctx.materials);
+        acc.hit(hit.depth(ctx), emission, direct, Vec3::ZERO);
     }
 }
 

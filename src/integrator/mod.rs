@@ -22,6 +22,8 @@ pub mod direct;
 pub mod film;
 pub mod path;
 
+use std::f32::consts::FRAC_1_PI;
+
 use clap::ValueEnum;
 use glam::Vec3;
 use schemars::JsonSchema;
@@ -29,7 +31,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::anchor::AnchorParams;
 use crate::cache::CacheParams;
-use crate::interaction::{Materials, SurfacePoint, trace};
+use crate::interaction::{Materials, SurfacePoint, direct_irradiance, trace};
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::FrameScene;
 pub use film::{Accumulator, FrameImage, Pixel, RenderCounts};
@@ -160,6 +162,27 @@ impl CameraHit<'_> {
     /// Depth along the camera's view axis (the `Z` AOV).
     pub fn depth(&self, ctx: &FrameContext) -> f32 {
         self.sp.hit.t * self.dir.dot(ctx.scene.camera.forward)
+    }
+
+    /// Direct light the hit reflects towards the camera: albedo/π × the irradiance from
+    /// every light, by shadow rays (`light_samples` per emissive-triangle estimate).
+    pub fn direct_light(
+        &self,
+        ctx: &FrameContext,
+        light_samples: u32,
+        shadow_rays: &mut u64,
+    ) -> Vec3 {
+        self.sp.albedo(ctx.materials)
+            * FRAC_1_PI
+            * direct_irradiance(
+                ctx.scene,
+                &self.sp,
+                self.sampler,
+                self.sample,
+                light_samples,
+                shading_dims().take(3),
+                shadow_rays,
+            )
     }
 }
 

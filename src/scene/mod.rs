@@ -1,5 +1,6 @@
 //! The editable scene description (STYLE.md §2, Tungsten's `Scene`): glTF layers composed
-//! by a job file, with every prim's motion tag resolved. [`Scene::evaluate`] is the one
+//! as a [`SceneDesc`] describes them (a job file's layers), with every prim's motion tag
+//! resolved. [`Scene::evaluate`] is the one
 //! function that turns it into the immutable, render-ready [`FrameScene`] at a time `t`.
 //!
 //! Motion tags (DESIGN.md, Scene conventions): a node's `extras.motion` (`"static"` or

@@ -4,8 +4,8 @@
 //! line of every import on it.
 //!
 //! The graph:
-//! - **Nodes**: one per module file. `src/job.rs` is `job`, `src/gi/mod.rs` is `gi`,
-//!   `src/gi/cache.rs` is `gi::cache`. `lib.rs` (the crate root: declarations and re-exports)
+//! - **Nodes**: one per module file. `src/job.rs` is `job`, `src/cache/mod.rs` is `cache`,
+//!   `src/cache/record.rs` is `cache::record`. `lib.rs` (the crate root: declarations and re-exports)
 //!   and `main.rs` (a separate crate that uses the library) import nothing here. Modules
 //!   written inline (`mod x { .. }`) belong to their file's node.
 //! - **Edges**: every `use` path and every inline path that starts with `crate::`, `super::`
