@@ -11,6 +11,9 @@ use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 use gltf::animation::util::ReadOutputs;
 use gltf::khr_lights_punctual::Kind;
 use gltf::mesh::Mode;
+use gltf::mesh::util::{
+    ReadNormalDisplacements, ReadPositionDisplacements, ReadTangentDisplacements,
+};
 
 use super::anim::{Animation, Channel, Interpolation, Property, Sampler};
 use super::material::{Material, Texture, TextureRef, Wrap};
@@ -40,6 +43,7 @@ pub struct Loaded {
     pub textures: Vec<Texture>,
 }
 
+/// How errors and warnings name element `index` of the document's `kind` array.
 fn name_of(kind: &str, index: usize, name: Option<&str>) -> String {
     match name {
         Some(n) if !n.is_empty() => format!("{kind}[{index}] \"{n}\""),
@@ -50,18 +54,72 @@ fn name_of(kind: &str, index: usize, name: Option<&str>) -> String {
 /// Loads one glTF file. `offsets` are where this layer's materials and textures will sit in
 /// the scene's global lists.
 pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
-    let bad = |at: &str, msg: String| Error::input(path, at, msg);
-    let bytes = std::fs::read(path).map_err(|e| bad("file", format!("cannot read: {e}")))?;
-    let unchecked = gltf::Gltf::from_slice_without_validation(&bytes)
-        .map_err(|e| bad("file", format!("not a valid glTF or GLB file: {e}")))?;
     let mut warnings = Vec::new();
+    let gltf = open(path, &mut warnings)?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let doc = &gltf.document;
+    check_files(path, doc, base)?;
+    let buffers = gltf::import_buffers(doc, Some(base), gltf.blob.clone())
+        .map_err(|e| Error::input(path, "buffers", format!("cannot load buffer data: {e}")))?;
+    check_accessors(path, doc, &buffers)?;
+
+    let mut r = Reader {
+        path,
+        doc,
+        buffers: &buffers,
+        base,
+        offsets,
+        warnings,
+    };
+    let (materials, textures) = r.materials()?;
+    let (meshes, degenerate_triangles) = r.meshes()?;
+    let skins = r.skins();
+    let lights = r.lights()?;
+    let cameras = r.cameras();
+    let (nodes, roots) = r.nodes()?;
+    let animations = r.animations()?;
+    Ok(Loaded {
+        layer: Layer {
+            path: path.to_path_buf(),
+            transform: Mat4::IDENTITY,
+            nodes,
+            roots,
+            meshes,
+            skins,
+            animations,
+            lights,
+            cameras,
+            degenerate_triangles,
+            warnings: r.warnings,
+        },
+        materials,
+        textures,
+    })
+}
+
+/// Reads and parses the file; the extensions are checked before the full parse, so that a
+/// file needing an unsupported extension is reported as such rather than as invalid.
+fn open(path: &Path, warnings: &mut Vec<String>) -> Result<gltf::Gltf> {
+    let bytes =
+        std::fs::read(path).map_err(|e| Error::input(path, "file", format!("cannot read: {e}")))?;
+    let unchecked = gltf::Gltf::from_slice_without_validation(&bytes)
+        .map_err(|e| Error::input(path, "file", format!("not a valid glTF or GLB file: {e}")))?;
+    check_extensions(path, &unchecked, warnings)?;
+    drop(unchecked);
+    gltf::Gltf::from_slice(&bytes).map_err(|e| Error::input(path, "file", e.to_string()))
+}
+
+/// Reads `extensionsRequired` and `extensionsUsed` (glTF 2.0 §3.12): a required extension
+/// outside [`SUPPORTED_EXTENSIONS`] is an error, an optional one a warning.
+fn check_extensions(path: &Path, unchecked: &gltf::Gltf, warnings: &mut Vec<String>) -> Result<()> {
     let required: Vec<String> = unchecked
         .extensions_required()
         .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
         .map(str::to_owned)
         .collect();
     if !required.is_empty() {
-        return Err(bad(
+        return Err(Error::input(
+            path,
             "extensionsRequired",
             format!(
                 "the file requires {} which anchorage does not support (supported: {})",
@@ -81,19 +139,21 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
             optional.join(", ")
         ));
     }
-    drop(unchecked);
-    let gltf = gltf::Gltf::from_slice(&bytes).map_err(|e| bad("file", e.to_string()))?;
-    let base = path.parent().unwrap_or(Path::new("."));
-    let doc = &gltf.document;
+    Ok(())
+}
 
+/// Checks that the files named by external buffer and image URIs (glTF 2.0 §3.6.1, §3.8.3)
+/// exist beside the glTF file, buffers first.
+fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
     for b in doc.buffers() {
         if let gltf::buffer::Source::Uri(uri) = b.source()
             && !uri.starts_with("data:")
         {
             let file = base.join(urlencoding_decode(uri));
             if !file.is_file() {
-                return Err(bad(
-                    &name_of("buffers", b.index(), b.name()),
+                return Err(Error::input(
+                    path,
+                    name_of("buffers", b.index(), b.name()),
                     format!("buffer file {} not found", file.display()),
                 ));
             }
@@ -104,74 +164,97 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
             && !uri.starts_with("data:")
             && !base.join(urlencoding_decode(uri)).is_file()
         {
-            return Err(bad(
-                &name_of("images", im.index(), im.name()),
+            return Err(Error::input(
+                path,
+                name_of("images", im.index(), im.name()),
                 format!("image file {} not found", base.join(uri).display()),
             ));
         }
     }
-    let buffers = gltf::import_buffers(doc, Some(base), gltf.blob.clone())
-        .map_err(|e| bad("buffers", format!("cannot load buffer data: {e}")))?;
-    check_accessors(path, doc, &buffers)?;
+    Ok(())
+}
 
-    // Textures: only base colour textures are decoded (sRGB → linear).
-    let mut texture_of_image = vec![None; doc.images().len()];
-    let mut textures = Vec::new();
-    let mut images: Option<Vec<gltf::image::Data>> = None;
-    let mut materials = Vec::new();
-    for m in doc.materials() {
+/// What gltf's reader yields for one morph target: position, normal and tangent displacements.
+type MorphTargetReads<'s> = (
+    Option<ReadPositionDisplacements<'s>>,
+    Option<ReadNormalDisplacements<'s>>,
+    Option<ReadTangentDisplacements<'s>>,
+);
+
+/// A parsed document whose files and accessors have been checked, read one section at a time.
+/// Each section method returns the renderer's description of that section; `warnings`
+/// collects what is ignored, in document order.
+struct Reader<'a> {
+    path: &'a Path,
+    doc: &'a gltf::Document,
+    buffers: &'a [gltf::buffer::Data],
+    /// The folder that relative URIs start from.
+    base: &'a Path,
+    offsets: Offsets,
+    warnings: Vec<String>,
+}
+
+/// The base colour textures decoded so far: each glTF image becomes one [`Texture`], decoded
+/// the first time a material uses it.
+struct Textures {
+    /// Every image of the file, decoded when the first base colour texture is met.
+    images: Option<Vec<gltf::image::Data>>,
+    /// The global texture index of each image already decoded.
+    of_image: Vec<Option<usize>>,
+    list: Vec<Texture>,
+}
+
+impl<'a> Reader<'a> {
+    /// An input error at element `at` of this file.
+    fn bad(&self, at: &str, message: impl Into<String>) -> Error {
+        Error::input(self.path, at, message)
+    }
+
+    /// Adds a warning about this file.
+    fn warn(&mut self, what: std::fmt::Arguments<'_>) {
+        self.warnings
+            .push(format!("{}: {what}", self.path.display()));
+    }
+
+    /// The buffer data that gltf's accessor readers ask for.
+    fn data(&self) -> impl Fn(gltf::Buffer<'_>) -> Option<&'a [u8]> + Clone + use<'a> {
+        let buffers = self.buffers;
+        move |b| Some(&buffers[b.index()].0[..])
+    }
+
+    /// Reads `materials` (glTF 2.0 §3.9) and the textures they use; only base colour
+    /// textures are decoded (sRGB → linear).
+    fn materials(&mut self) -> Result<(Vec<Material>, Vec<Texture>)> {
+        let mut textures = Textures {
+            images: None,
+            of_image: vec![None; self.doc.images().len()],
+            list: Vec::new(),
+        };
+        let mut materials = Vec::new();
+        for m in self.doc.materials() {
+            materials.push(self.material(&m, &mut textures)?);
+        }
+        Ok((materials, textures.list))
+    }
+
+    /// Reads one material's metallic-roughness factors, base colour texture and emission.
+    fn material(&mut self, m: &gltf::Material<'_>, textures: &mut Textures) -> Result<Material> {
         let at = name_of("materials", m.index().unwrap_or(0), m.name());
         let pbr = m.pbr_metallic_roughness();
-        let mut base_color_texture = None;
-        if let Some(info) = pbr.base_color_texture() {
-            if info.tex_coord() != 0 {
-                return Err(bad(
-                    &at,
-                    "base colour texture uses TEXCOORD_1 or higher; only TEXCOORD_0 is supported"
-                        .into(),
-                ));
-            }
-            let tex = info.texture();
-            let image = tex.source().index();
-            if images.is_none() {
-                images = Some(
-                    gltf::import_images(doc, Some(base), &buffers)
-                        .map_err(|e| bad("images", format!("cannot decode image: {e}")))?,
-                );
-            }
-            let idx = match texture_of_image[image] {
-                Some(i) => i,
-                None => {
-                    let data = &images.as_ref().expect("decoded above")[image];
-                    let t = decode_texture(data).ok_or_else(|| {
-                        bad(
-                            &name_of("images", image, None),
-                            format!("unsupported pixel format {:?}", data.format),
-                        )
-                    })?;
-                    textures.push(t);
-                    let i = offsets.textures + textures.len() - 1;
-                    texture_of_image[image] = Some(i);
-                    i
-                }
-            };
-            let s = tex.sampler();
-            base_color_texture = Some(TextureRef {
-                texture: idx,
-                wrap: [wrap(s.wrap_s()), wrap(s.wrap_t())],
-            });
-        }
+        let base_color_texture = match pbr.base_color_texture() {
+            Some(info) => Some(self.base_color_texture(&at, &info, textures)?),
+            None => None,
+        };
         if m.emissive_texture().is_some() {
-            warnings.push(format!(
-                "{}: {at}: emissiveTexture is not supported; emission uses emissiveFactor alone",
-                path.display()
+            self.warn(format_args!(
+                "{at}: emissiveTexture is not supported; emission uses emissiveFactor alone"
             ));
         }
         let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
         if !emission.is_finite() || emission.min_element() < 0.0 {
-            return Err(bad(&at, "emission must be finite and non-negative".into()));
+            return Err(self.bad(&at, "emission must be finite and non-negative"));
         }
-        materials.push(Material {
+        Ok(Material {
             name: m.name().unwrap_or("").to_owned(),
             base_color: Vec4::from(pbr.base_color_factor()),
             base_color_texture,
@@ -179,183 +262,287 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
             double_sided: m.double_sided(),
             roughness: pbr.roughness_factor(),
             metallic: pbr.metallic_factor(),
-        });
+        })
     }
-    let get = |b: gltf::Buffer<'_>| Some(&buffers[b.index()].0[..]);
 
-    // Meshes.
-    let mut meshes = Vec::new();
-    let mut degenerate = 0usize;
-    for mesh in doc.meshes() {
-        let mesh_at = name_of("meshes", mesh.index(), mesh.name());
-        let mut primitives = Vec::new();
-        for p in mesh.primitives() {
-            let at = format!("{mesh_at}.primitives[{}]", p.index());
-            let mode = p.mode();
-            if !matches!(
-                mode,
-                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
-            ) {
-                warnings.push(format!(
-                    "{}: {at}: {mode:?} primitives are not rendered",
-                    path.display()
-                ));
-                continue;
-            }
-            let r = p.reader(get);
-            let positions: Vec<Vec3> = r
-                .read_positions()
-                .ok_or_else(|| bad(&at, "has no POSITION attribute".into()))?
-                .map(Vec3::from)
-                .collect();
-            if let Some(i) = positions.iter().position(|v| !v.is_finite()) {
-                return Err(bad(
-                    &at,
-                    format!("POSITION {i} is not finite ({})", positions[i]),
-                ));
-            }
-            let normals: Option<Vec<Vec3>> = r.read_normals().map(|n| n.map(Vec3::from).collect());
-            let uvs: Option<Vec<Vec2>> = r
-                .read_tex_coords(0)
-                .map(|t| t.into_f32().map(Vec2::from).collect());
-            let raw: Vec<u32> = match r.read_indices() {
-                Some(i) => i.into_u32().collect(),
-                None => (0..positions.len() as u32).collect(),
-            };
-            if let Some(&i) = raw.iter().find(|&&i| i as usize >= positions.len()) {
-                return Err(bad(
-                    &at,
-                    format!("index {i} is out of range ({} vertices)", positions.len()),
-                ));
-            }
-            let mut indices = triangulate(mode, &raw);
-            let before = indices.len() / 3;
-            indices = drop_degenerate(&positions, indices);
-            degenerate += before - indices.len() / 3;
-            let joints: Vec<[u16; 4]> = r
-                .read_joints(0)
-                .map(|j| j.into_u16().collect())
-                .unwrap_or_default();
-            let weights: Vec<[f32; 4]> = r
-                .read_weights(0)
-                .map(|w| w.into_f32().collect())
-                .unwrap_or_default();
-            let targets = r
-                .read_morph_targets()
-                .map(|(pos, nrm, _)| MorphTarget {
-                    positions: pos.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
-                    normals: nrm.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
-                })
-                .collect::<Vec<_>>();
-            for (ti, t) in targets.iter().enumerate() {
-                if (!t.positions.is_empty() && t.positions.len() != positions.len())
-                    || t.positions.iter().any(|v| !v.is_finite())
-                {
-                    return Err(bad(
-                        &format!("{at}.targets[{ti}]"),
-                        "POSITION must be finite and match the vertex count".into(),
-                    ));
+    /// Reads the base colour texture of material `at` (glTF 2.0 §3.8): its image, decoded
+    /// once, and its sampler's wrap modes.
+    fn base_color_texture(
+        &self,
+        at: &str,
+        info: &gltf::texture::Info<'_>,
+        textures: &mut Textures,
+    ) -> Result<TextureRef> {
+        if info.tex_coord() != 0 {
+            return Err(self.bad(
+                at,
+                "base colour texture uses TEXCOORD_1 or higher; only TEXCOORD_0 is supported",
+            ));
+        }
+        let tex = info.texture();
+        let texture = self.texture_of_image(tex.source().index(), textures)?;
+        let s = tex.sampler();
+        Ok(TextureRef {
+            texture,
+            wrap: [wrap(s.wrap_s()), wrap(s.wrap_t())],
+        })
+    }
+
+    /// The global texture index of `image` (glTF 2.0 §3.8.3): the file's images are imported
+    /// when a texture is first needed, and each is converted the first time it is used.
+    fn texture_of_image(&self, image: usize, textures: &mut Textures) -> Result<usize> {
+        if textures.images.is_none() {
+            textures.images = Some(
+                gltf::import_images(self.doc, Some(self.base), self.buffers)
+                    .map_err(|e| self.bad("images", format!("cannot decode image: {e}")))?,
+            );
+        }
+        if let Some(i) = textures.of_image[image] {
+            return Ok(i);
+        }
+        let data = &textures.images.as_ref().expect("decoded above")[image];
+        let t = decode_texture(data).ok_or_else(|| {
+            self.bad(
+                &name_of("images", image, None),
+                format!("unsupported pixel format {:?}", data.format),
+            )
+        })?;
+        textures.list.push(t);
+        let i = self.offsets.textures + textures.list.len() - 1;
+        textures.of_image[image] = Some(i);
+        Ok(i)
+    }
+
+    /// Reads `meshes` (glTF 2.0 §3.7.2); also returns how many degenerate triangles were
+    /// dropped, and warns once if any were.
+    fn meshes(&mut self) -> Result<(Vec<Mesh>, usize)> {
+        let mut meshes = Vec::new();
+        let mut degenerate = 0usize;
+        for mesh in self.doc.meshes() {
+            let mesh_at = name_of("meshes", mesh.index(), mesh.name());
+            let mut primitives = Vec::new();
+            for p in mesh.primitives() {
+                let at = format!("{mesh_at}.primitives[{}]", p.index());
+                if let Some((primitive, dropped)) = self.primitive(&at, &p)? {
+                    degenerate += dropped;
+                    primitives.push(primitive);
                 }
             }
-            let material = match p.material().index() {
-                Some(i) => offsets.materials + 1 + i,
-                None => 0,
-            };
-            primitives.push(Primitive {
-                positions,
-                normals: normals.filter(|n| n.iter().all(|v| v.is_finite())),
-                uvs,
-                indices,
-                material,
-                joints,
-                weights,
-                targets,
+            meshes.push(Mesh {
+                name: mesh.name().unwrap_or("").to_owned(),
+                weights: mesh.weights().map(<[f32]>::to_vec).unwrap_or_default(),
+                primitives,
             });
         }
-        meshes.push(Mesh {
-            name: mesh.name().unwrap_or("").to_owned(),
-            weights: mesh.weights().map(<[f32]>::to_vec).unwrap_or_default(),
-            primitives,
-        });
-    }
-    if degenerate > 0 {
-        warnings.push(format!(
-            "{}: {degenerate} degenerate (zero-area) triangles skipped",
-            path.display()
-        ));
+        if degenerate > 0 {
+            self.warn(format_args!(
+                "{degenerate} degenerate (zero-area) triangles skipped"
+            ));
+        }
+        Ok((meshes, degenerate))
     }
 
-    let skins = doc
-        .skins()
-        .map(|s| {
-            let r = s.reader(get);
-            let joints: Vec<usize> = s.joints().map(|j| j.index()).collect();
-            let inverse_bind: Vec<Mat4> = match r.read_inverse_bind_matrices() {
-                Some(m) => m.map(|c| Mat4::from_cols_array_2d(&c)).collect(),
-                None => vec![Mat4::IDENTITY; joints.len()],
-            };
-            Skin {
-                joints,
-                inverse_bind,
+    /// Reads one primitive (glTF 2.0 §3.7.2.1) with the number of degenerate triangles
+    /// dropped from it; points and lines are skipped with a warning (`None`).
+    fn primitive(
+        &mut self,
+        at: &str,
+        p: &gltf::Primitive<'_>,
+    ) -> Result<Option<(Primitive, usize)>> {
+        let mode = p.mode();
+        if !matches!(
+            mode,
+            Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+        ) {
+            self.warn(format_args!("{at}: {mode:?} primitives are not rendered"));
+            return Ok(None);
+        }
+        let r = p.reader(self.data());
+        let positions = self.positions(at, r.read_positions())?;
+        let normals: Option<Vec<Vec3>> = r.read_normals().map(|n| n.map(Vec3::from).collect());
+        let uvs: Option<Vec<Vec2>> = r
+            .read_tex_coords(0)
+            .map(|t| t.into_f32().map(Vec2::from).collect());
+        let raw: Vec<u32> = match r.read_indices() {
+            Some(i) => i.into_u32().collect(),
+            None => (0..positions.len() as u32).collect(),
+        };
+        self.check_indices(at, &raw, positions.len())?;
+        let indices = triangulate(mode, &raw);
+        let before = indices.len() / 3;
+        let indices = drop_degenerate(&positions, indices);
+        let degenerate = before - indices.len() / 3;
+        let joints: Vec<[u16; 4]> = r
+            .read_joints(0)
+            .map(|j| j.into_u16().collect())
+            .unwrap_or_default();
+        let weights: Vec<[f32; 4]> = r
+            .read_weights(0)
+            .map(|w| w.into_f32().collect())
+            .unwrap_or_default();
+        let targets = self.morph_targets(at, r.read_morph_targets(), positions.len())?;
+        let material = match p.material().index() {
+            Some(i) => self.offsets.materials + 1 + i,
+            None => 0,
+        };
+        let primitive = Primitive {
+            positions,
+            normals: normals.filter(|n| n.iter().all(|v| v.is_finite())),
+            uvs,
+            indices,
+            material,
+            joints,
+            weights,
+            targets,
+        };
+        Ok(Some((primitive, degenerate)))
+    }
+
+    /// Reads primitive `at`'s POSITION attribute, which must be present and finite.
+    fn positions(
+        &self,
+        at: &str,
+        read: Option<gltf::mesh::util::ReadPositions<'_>>,
+    ) -> Result<Vec<Vec3>> {
+        let positions: Vec<Vec3> = read
+            .ok_or_else(|| self.bad(at, "has no POSITION attribute"))?
+            .map(Vec3::from)
+            .collect();
+        if let Some(i) = positions.iter().position(|v| !v.is_finite()) {
+            return Err(self.bad(at, format!("POSITION {i} is not finite ({})", positions[i])));
+        }
+        Ok(positions)
+    }
+
+    /// Checks that primitive `at`'s indices name one of its `vertices`.
+    fn check_indices(&self, at: &str, raw: &[u32], vertices: usize) -> Result<()> {
+        match raw.iter().find(|&&i| i as usize >= vertices) {
+            Some(&i) => Err(self.bad(
+                at,
+                format!("index {i} is out of range ({vertices} vertices)"),
+            )),
+            None => Ok(()),
+        }
+    }
+
+    /// Reads primitive `at`'s morph targets (glTF 2.0 §3.7.2.2): a target's positions, if
+    /// any, must be finite and one per vertex.
+    fn morph_targets(
+        &self,
+        at: &str,
+        read: impl Iterator<Item = MorphTargetReads<'a>>,
+        vertices: usize,
+    ) -> Result<Vec<MorphTarget>> {
+        let targets = read
+            .map(|(pos, nrm, _)| MorphTarget {
+                positions: pos.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
+                normals: nrm.map(|i| i.map(Vec3::from).collect()).unwrap_or_default(),
+            })
+            .collect::<Vec<_>>();
+        for (ti, t) in targets.iter().enumerate() {
+            if (!t.positions.is_empty() && t.positions.len() != vertices)
+                || t.positions.iter().any(|v| !v.is_finite())
+            {
+                return Err(self.bad(
+                    &format!("{at}.targets[{ti}]"),
+                    "POSITION must be finite and match the vertex count",
+                ));
             }
-        })
-        .collect();
+        }
+        Ok(targets)
+    }
 
-    let lights: Vec<Light> = doc
-        .lights()
-        .map(|ls| {
-            ls.map(|l| Light {
-                name: l.name().unwrap_or("").to_owned(),
-                color: Vec3::from(l.color()),
-                intensity: l.intensity(),
-                range: l.range(),
-                kind: match l.kind() {
-                    Kind::Directional => LightKind::Directional,
-                    Kind::Point => LightKind::Point,
-                    Kind::Spot {
-                        inner_cone_angle,
-                        outer_cone_angle,
-                    } => LightKind::Spot {
-                        inner: inner_cone_angle,
-                        outer: outer_cone_angle,
-                    },
+    /// Reads `skins` (glTF 2.0 §3.7.3): joints and inverse bind matrices, identity where the
+    /// file gives none.
+    fn skins(&self) -> Vec<Skin> {
+        self.doc
+            .skins()
+            .map(|s| {
+                let r = s.reader(self.data());
+                let joints: Vec<usize> = s.joints().map(|j| j.index()).collect();
+                let inverse_bind: Vec<Mat4> = match r.read_inverse_bind_matrices() {
+                    Some(m) => m.map(|c| Mat4::from_cols_array_2d(&c)).collect(),
+                    None => vec![Mat4::IDENTITY; joints.len()],
+                };
+                Skin {
+                    joints,
+                    inverse_bind,
+                }
+            })
+            .collect()
+    }
+
+    /// Reads the `KHR_lights_punctual` lights; intensity and colour must be finite and
+    /// intensity non-negative.
+    fn lights(&self) -> Result<Vec<Light>> {
+        let lights: Vec<Light> = self
+            .doc
+            .lights()
+            .map(|ls| ls.map(light).collect())
+            .unwrap_or_default();
+        for (i, l) in lights.iter().enumerate() {
+            if !(l.intensity.is_finite() && l.intensity >= 0.0 && l.color.is_finite()) {
+                return Err(self.bad(
+                    &name_of("KHR_lights_punctual.lights", i, Some(&l.name)),
+                    "intensity and colour must be finite and non-negative",
+                ));
+            }
+        }
+        Ok(lights)
+    }
+
+    /// Reads `cameras` (glTF 2.0 §3.10): the projection's vertical field of view or
+    /// magnification; the renderer sets its own clip planes.
+    fn cameras(&self) -> Vec<Camera> {
+        self.doc
+            .cameras()
+            .map(|c| Camera {
+                name: c.name().unwrap_or("").to_owned(),
+                projection: match c.projection() {
+                    gltf::camera::Projection::Perspective(p) => {
+                        Projection::Perspective { yfov: p.yfov() }
+                    }
+                    gltf::camera::Projection::Orthographic(o) => {
+                        Projection::Orthographic { ymag: o.ymag() }
+                    }
                 },
             })
             .collect()
-        })
-        .unwrap_or_default();
-    for (i, l) in lights.iter().enumerate() {
-        if !(l.intensity.is_finite() && l.intensity >= 0.0 && l.color.is_finite()) {
-            return Err(bad(
-                &name_of("KHR_lights_punctual.lights", i, Some(&l.name)),
-                "intensity and colour must be finite and non-negative".into(),
-            ));
-        }
     }
 
-    let cameras = doc
-        .cameras()
-        .map(|c| Camera {
-            name: c.name().unwrap_or("").to_owned(),
-            projection: match c.projection() {
-                gltf::camera::Projection::Perspective(p) => {
-                    Projection::Perspective { yfov: p.yfov() }
-                }
-                gltf::camera::Projection::Orthographic(o) => {
-                    Projection::Orthographic { ymag: o.ymag() }
-                }
-            },
-        })
-        .collect();
+    /// Reads `nodes` (glTF 2.0 §3.5.2), links each to its parent, and returns them with the
+    /// roots of the default scene (or of the first scene, or the parentless nodes).
+    fn nodes(&self) -> Result<(Vec<Node>, Vec<usize>)> {
+        let mut nodes: Vec<Node> = Vec::new();
+        for n in self.doc.nodes() {
+            nodes.push(self.node(&n)?);
+        }
+        for i in 0..nodes.len() {
+            for c in nodes[i].children.clone() {
+                nodes[c].parent = Some(i);
+            }
+        }
+        let roots: Vec<usize> = match self
+            .doc
+            .default_scene()
+            .or_else(|| self.doc.scenes().next())
+        {
+            Some(s) => s.nodes().map(|n| n.index()).collect(),
+            None => (0..nodes.len())
+                .filter(|&i| nodes[i].parent.is_none())
+                .collect(),
+        };
+        Ok((nodes, roots))
+    }
 
-    // Nodes, with tags from extras.
-    let mut nodes: Vec<Node> = Vec::new();
-    for n in doc.nodes() {
+    /// Reads one node's transform, attachments and the motion tag in its extras (see
+    /// [`motion_tag`]); `parent` is filled in by [`Reader::nodes`].
+    fn node(&self, n: &gltf::Node<'_>) -> Result<Node> {
         let (t, r, s) = n.transform().decomposed();
         let at = name_of("nodes", n.index(), n.name());
-        let tag =
-            motion_tag(n.extras()).map_err(|m| bad(&format!("{at}.extras.{MOTION_KEY}"), m))?;
-        nodes.push(Node {
+        let tag = motion_tag(n.extras())
+            .map_err(|m| self.bad(&format!("{at}.extras.{MOTION_KEY}"), m))?;
+        Ok(Node {
             name: n.name().unwrap_or("").to_owned(),
             parent: None,
             children: n.children().map(|c| c.index()).collect(),
@@ -370,124 +557,130 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
             extras_tag: tag,
             motion: Motion::Static,
             why: super::TagSource::DefaultStatic,
-        });
+        })
     }
-    for i in 0..nodes.len() {
-        for c in nodes[i].children.clone() {
-            nodes[c].parent = Some(i);
-        }
-    }
-    let roots: Vec<usize> = match doc.default_scene().or_else(|| doc.scenes().next()) {
-        Some(s) => s.nodes().map(|n| n.index()).collect(),
-        None => (0..nodes.len())
-            .filter(|&i| nodes[i].parent.is_none())
-            .collect(),
-    };
 
-    let mut animations = Vec::new();
-    for a in doc.animations() {
-        let mut channels = Vec::new();
-        for ch in a.channels() {
-            let at = format!(
-                "{}.channels[{}]",
-                name_of("animations", a.index(), a.name()),
-                ch.index()
-            );
-            let r = ch.reader(get);
-            let times: Vec<f32> = r
-                .read_inputs()
-                .ok_or_else(|| bad(&at, "sampler has no input".into()))?
-                .collect();
-            if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
-                return Err(bad(&at, "key times must be finite and increasing".into()));
+    /// Reads `animations` (glTF 2.0 §3.11); an unnamed animation is named after its index.
+    fn animations(&self) -> Result<Vec<Animation>> {
+        let mut animations = Vec::new();
+        for a in self.doc.animations() {
+            let mut channels = Vec::new();
+            for ch in a.channels() {
+                let at = format!(
+                    "{}.channels[{}]",
+                    name_of("animations", a.index(), a.name()),
+                    ch.index()
+                );
+                channels.push(self.channel(&at, &ch)?);
             }
-            let (property, width, values): (Property, usize, Vec<f32>) = match r
-                .read_outputs()
-                .ok_or_else(|| bad(&at, "sampler has no output".into()))?
-            {
-                ReadOutputs::Translations(v) => (Property::Translation, 3, v.flatten().collect()),
-                ReadOutputs::Rotations(v) => {
-                    (Property::Rotation, 4, v.into_f32().flatten().collect())
-                }
-                ReadOutputs::Scales(v) => (Property::Scale, 3, v.flatten().collect()),
-                ReadOutputs::MorphTargetWeights(v) => {
-                    let all: Vec<f32> = v.into_f32().collect();
-                    let per_key = if times.is_empty() {
-                        0
-                    } else {
-                        all.len() / times.len()
-                    };
-                    let stride = if ch.sampler().interpolation()
-                        == gltf::animation::Interpolation::CubicSpline
-                    {
-                        3
-                    } else {
-                        1
-                    };
-                    (Property::Weights, per_key / stride, all)
-                }
-            };
-            let interpolation = match ch.sampler().interpolation() {
-                gltf::animation::Interpolation::Step => Interpolation::Step,
-                gltf::animation::Interpolation::Linear => Interpolation::Linear,
-                gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
-            };
-            let stride = if interpolation == Interpolation::CubicSpline {
-                3
-            } else {
-                1
-            };
-            if width == 0
-                || values.len() != times.len() * stride * width
-                || values.iter().any(|v| !v.is_finite())
-            {
-                return Err(bad(
-                    &at,
-                    format!(
-                        "sampler output has {} values for {} keys (expected {} finite values)",
-                        values.len(),
-                        times.len(),
-                        times.len() * stride * width
-                    ),
-                ));
-            }
-            channels.push(Channel {
-                node: ch.target().node().index(),
-                property,
-                sampler: Sampler {
-                    interpolation,
-                    times,
-                    values,
-                    width,
+            animations.push(Animation {
+                name: match a.name() {
+                    Some(n) if !n.is_empty() => n.to_owned(),
+                    _ => format!("animations[{}]", a.index()),
                 },
+                channels,
             });
         }
-        animations.push(Animation {
-            name: match a.name() {
-                Some(n) if !n.is_empty() => n.to_owned(),
-                _ => format!("animations[{}]", a.index()),
-            },
-            channels,
-        });
+        Ok(animations)
     }
 
-    Ok(Loaded {
-        layer: Layer {
-            path: path.to_path_buf(),
-            transform: Mat4::IDENTITY,
-            nodes,
-            roots,
-            meshes,
-            skins,
-            animations,
-            lights,
-            cameras,
-            degenerate_triangles: degenerate,
-            warnings,
+    /// Reads one channel and its sampler: key times finite and increasing, and one finite
+    /// value (three for cubic splines: in-tangent, value, out-tangent) per key and component.
+    fn channel(&self, at: &str, ch: &gltf::animation::Channel<'_>) -> Result<Channel> {
+        let r = ch.reader(self.data());
+        let times: Vec<f32> = r
+            .read_inputs()
+            .ok_or_else(|| self.bad(at, "sampler has no input"))?
+            .collect();
+        if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
+            return Err(self.bad(at, "key times must be finite and increasing"));
+        }
+        let outputs = r
+            .read_outputs()
+            .ok_or_else(|| self.bad(at, "sampler has no output"))?;
+        let (property, width, values) = sampler_values(ch, outputs, times.len());
+        let interpolation = match ch.sampler().interpolation() {
+            gltf::animation::Interpolation::Step => Interpolation::Step,
+            gltf::animation::Interpolation::Linear => Interpolation::Linear,
+            gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
+        };
+        let stride = if interpolation == Interpolation::CubicSpline {
+            3
+        } else {
+            1
+        };
+        if width == 0
+            || values.len() != times.len() * stride * width
+            || values.iter().any(|v| !v.is_finite())
+        {
+            return Err(self.bad(
+                at,
+                format!(
+                    "sampler output has {} values for {} keys (expected {} finite values)",
+                    values.len(),
+                    times.len(),
+                    times.len() * stride * width
+                ),
+            ));
+        }
+        Ok(Channel {
+            node: ch.target().node().index(),
+            property,
+            sampler: Sampler {
+                interpolation,
+                times,
+                values,
+                width,
+            },
+        })
+    }
+}
+
+/// Converts one `KHR_lights_punctual` light; the cone angles of a spot light are in radians.
+fn light(l: gltf::khr_lights_punctual::Light<'_>) -> Light {
+    Light {
+        name: l.name().unwrap_or("").to_owned(),
+        color: Vec3::from(l.color()),
+        intensity: l.intensity(),
+        range: l.range(),
+        kind: match l.kind() {
+            Kind::Directional => LightKind::Directional,
+            Kind::Point => LightKind::Point,
+            Kind::Spot {
+                inner_cone_angle,
+                outer_cone_angle,
+            } => LightKind::Spot {
+                inner: inner_cone_angle,
+                outer: outer_cone_angle,
+            },
         },
-        materials,
-        textures,
-    })
+    }
+}
+
+/// Reads a channel's sampler output as the property it animates, the number of components
+/// per value (`width`) and the flat values. Morph target weights have one component per
+/// target: the values per key over `keys` key times, divided by three for cubic splines.
+fn sampler_values(
+    ch: &gltf::animation::Channel<'_>,
+    outputs: ReadOutputs<'_>,
+    keys: usize,
+) -> (Property, usize, Vec<f32>) {
+    match outputs {
+        ReadOutputs::Translations(v) => (Property::Translation, 3, v.flatten().collect()),
+        ReadOutputs::Rotations(v) => (Property::Rotation, 4, v.into_f32().flatten().collect()),
+        ReadOutputs::Scales(v) => (Property::Scale, 3, v.flatten().collect()),
+        ReadOutputs::MorphTargetWeights(v) => {
+            let all: Vec<f32> = v.into_f32().collect();
+            let per_key = all.len().checked_div(keys).unwrap_or(0);
+            let stride =
+                if ch.sampler().interpolation() == gltf::animation::Interpolation::CubicSpline {
+                    3
+                } else {
+                    1
+                };
+            (Property::Weights, per_key / stride, all)
+        }
+    }
 }
 
 /// Reads the motion tag from a node's extras. Extras that are not an object, objects without
