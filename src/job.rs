@@ -435,110 +435,19 @@ impl Job {
                 format!("end {} is before start {}", frames.end, frames.start),
             ));
         }
-        let mut rs = file.render;
-        if let Some(v) = overrides.visibility {
-            rs.visibility = v;
-        }
-        if rs.samples_per_pixel == 0 || rs.samples_per_pixel > 65536 {
-            return Err(Error::input(
-                path,
-                "render.samples_per_pixel",
-                "must be 1..=65536",
-            ));
-        }
-        if rs.light_samples == 0 || rs.light_samples > 1024 {
-            return Err(Error::input(
-                path,
-                "render.light_samples",
-                "must be 1..=1024",
-            ));
-        }
+        let render = render_settings(path, file.render, overrides)?;
         let mut method = file.method;
         if let Some(m) = overrides.method {
             method.name = m;
         }
         method.validate(path)?;
-        let mut layers = Vec::new();
-        for (i, l) in file.scene.iter().enumerate() {
-            let m = l.transform.matrix();
-            if !m.is_finite() || m.determinant().abs() < 1e-30 {
-                return Err(Error::input(
-                    path,
-                    format!("scene[{i}].transform"),
-                    "must be finite and invertible",
-                ));
-            }
-            layers.push(LayerDesc {
-                path: base.join(&l.path),
-                transform: m,
-                tags: l.tags.clone(),
-            });
-        }
-        if let Some(CameraFile::LookAt {
-            position,
-            look_at,
-            up,
-            yfov_deg,
-        }) = &file.camera
-        {
-            let (p, a, u) = (Vec3::from(*position), Vec3::from(*look_at), Vec3::from(*up));
-            if !(p.is_finite() && a.is_finite() && u.is_finite()) || (a - p).length() == 0.0 {
-                return Err(Error::input(
-                    path,
-                    "camera",
-                    "position and look_at must differ",
-                ));
-            }
-            if (a - p).normalize().cross(u.normalize_or_zero()).length() < 1e-6 {
-                return Err(Error::input(
-                    path,
-                    "camera.up",
-                    "must not be parallel to the view",
-                ));
-            }
-            if !(*yfov_deg > 0.0 && *yfov_deg < 180.0) {
-                return Err(Error::input(path, "camera.yfov_deg", "must be in (0, 180)"));
-            }
-        }
-        let out = file.output.clone().unwrap_or(OutputFile {
-            directory: None,
-            name: None,
-        });
-        let out_dir = match &overrides.out_dir {
-            Some(d) => d.clone(),
-            None => base.join(out.directory.unwrap_or_else(|| PathBuf::from("render"))),
-        };
-        let name = match out.name {
-            Some(n) => n,
-            None => path
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_else(|| "frame".into()),
-        };
-        if name.is_empty() || name.contains(['/', '\\']) {
-            return Err(Error::input(
-                path,
-                "output.name",
-                "must be a plain file name",
-            ));
-        }
+        let layers = layers(path, base, &file.scene)?;
+        let camera = file.camera.map(|c| camera(path, c)).transpose()?;
+        let (out_dir, name) = output(path, base, file.output, overrides)?;
         Ok(Job {
             path: path.to_path_buf(),
             layers,
-            camera: file.camera.map(|c| match c {
-                CameraFile::Node { node } => CameraSpec::Node(node),
-                CameraFile::LookAt {
-                    position,
-                    look_at,
-                    up,
-                    yfov_deg,
-                } => CameraSpec::LookAt(LookAt {
-                    position: Vec3::from(position),
-                    look_at: Vec3::from(look_at),
-                    up: Vec3::from(up),
-                    yfov: yfov_deg.to_radians(),
-                }),
-            }),
+            camera,
             width,
             height,
             frames,
@@ -547,7 +456,7 @@ impl Job {
             out_dir,
             name,
             seed: file.seed,
-            render: rs,
+            render,
             method,
         })
     }
@@ -614,6 +523,136 @@ impl Job {
         self.out_dir
             .join(format!("{}.{:04}.{ext}", self.name, frame))
     }
+}
+
+/// `render` with the command line's `--visibility` applied, checked.
+fn render_settings(
+    path: &Path,
+    file: RenderSettings,
+    overrides: &Overrides,
+) -> Result<RenderSettings> {
+    let mut rs = file;
+    if let Some(v) = overrides.visibility {
+        rs.visibility = v;
+    }
+    if rs.samples_per_pixel == 0 || rs.samples_per_pixel > 65536 {
+        return Err(Error::input(
+            path,
+            "render.samples_per_pixel",
+            "must be 1..=65536",
+        ));
+    }
+    if rs.light_samples == 0 || rs.light_samples > 1024 {
+        return Err(Error::input(
+            path,
+            "render.light_samples",
+            "must be 1..=1024",
+        ));
+    }
+    Ok(rs)
+}
+
+/// The layers with their paths resolved against `base` and their transforms checked.
+fn layers(path: &Path, base: &Path, scene: &[LayerFile]) -> Result<Vec<LayerDesc>> {
+    scene
+        .iter()
+        .enumerate()
+        .map(|(i, l)| {
+            let m = l.transform.matrix();
+            if !m.is_finite() || m.determinant().abs() < 1e-30 {
+                return Err(Error::input(
+                    path,
+                    format!("scene[{i}].transform"),
+                    "must be finite and invertible",
+                ));
+            }
+            Ok(LayerDesc {
+                path: base.join(&l.path),
+                transform: m,
+                tags: l.tags.clone(),
+            })
+        })
+        .collect()
+}
+
+/// The job's camera, checked: a node name, or a pinhole camera that can look somewhere.
+fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
+    let (position, look_at, up, yfov_deg) = match c {
+        CameraFile::Node { node } => return Ok(CameraSpec::Node(node)),
+        CameraFile::LookAt {
+            position,
+            look_at,
+            up,
+            yfov_deg,
+        } => (
+            Vec3::from(position),
+            Vec3::from(look_at),
+            Vec3::from(up),
+            yfov_deg,
+        ),
+    };
+    if !(position.is_finite() && look_at.is_finite() && up.is_finite())
+        || (look_at - position).length() == 0.0
+    {
+        return Err(Error::input(
+            path,
+            "camera",
+            "position and look_at must differ",
+        ));
+    }
+    if (look_at - position)
+        .normalize()
+        .cross(up.normalize_or_zero())
+        .length()
+        < 1e-6
+    {
+        return Err(Error::input(
+            path,
+            "camera.up",
+            "must not be parallel to the view",
+        ));
+    }
+    if !(yfov_deg > 0.0 && yfov_deg < 180.0) {
+        return Err(Error::input(path, "camera.yfov_deg", "must be in (0, 180)"));
+    }
+    Ok(CameraSpec::LookAt(LookAt {
+        position,
+        look_at,
+        up,
+        yfov: yfov_deg.to_radians(),
+    }))
+}
+
+/// The output directory (`--out` wins) and the frames' file name stem.
+fn output(
+    path: &Path,
+    base: &Path,
+    file: Option<OutputFile>,
+    overrides: &Overrides,
+) -> Result<(PathBuf, String)> {
+    let out = file.unwrap_or(OutputFile {
+        directory: None,
+        name: None,
+    });
+    let out_dir = match &overrides.out_dir {
+        Some(d) => d.clone(),
+        None => base.join(out.directory.unwrap_or_else(|| PathBuf::from("render"))),
+    };
+    let name = match out.name {
+        Some(n) => n,
+        None => path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "frame".into()),
+    };
+    if name.is_empty() || name.contains(['/', '\\']) {
+        return Err(Error::input(
+            path,
+            "output.name",
+            "must be a plain file name",
+        ));
+    }
+    Ok((out_dir, name))
 }
 
 /// A JSON error with the key path where serde stopped and the offending line (Tungsten-style).
