@@ -230,6 +230,11 @@ pub struct MethodSettings {
     /// Photons per irradiance estimate. Default: the preset's (32, 64, 100).
     #[schemars(range(min = 1, max = 1000))]
     pub k: Option<u32>,
+    /// No photon look-up (estimate, nearest photon, precomputed irradiance) reaches farther
+    /// than this fraction of the static scene's bounding radius, so light does not leak
+    /// through closed geometry; in (0, 1]. Default 0.05.
+    #[schemars(extend("exclusiveMinimum" = 0, "maximum" = 1))]
+    pub max_photon_radius: Option<f32>,
     /// `[M, N]`: θ × φ strata of the final gather, M·N rays per cache record. Default: the
     /// preset's (8×24, 12×36, 30×60).
     #[schemars(inner(range(min = 1, max = 256)))]
@@ -265,6 +270,9 @@ impl MethodSettings {
         }
         if let Some(v) = self.k {
             p.k = v;
+        }
+        if let Some(v) = self.max_photon_radius {
+            p.max_photon_radius = v;
         }
         if let Some(v) = self.strata {
             p.cache.strata = v;
@@ -304,6 +312,12 @@ impl MethodSettings {
         }
         if p.k == 0 || p.k > 1000 {
             return bad("k", "must be 1..=1000");
+        }
+        if !(p.max_photon_radius > 0.0 && p.max_photon_radius <= 1.0) {
+            return bad(
+                "max_photon_radius",
+                "must be in (0, 1] (a fraction of the static scene's bounding radius)",
+            );
         }
         if p.cache.strata.iter().any(|&s| s == 0 || s > 256) {
             return bad("strata", "must be two numbers in 1..=256");

@@ -132,7 +132,7 @@ pub fn update(
     let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
     let mut st = AnchorStats::default();
     let set = anchors.get_or_insert_with(|| {
-        let (lo, hi) = static_box(ctx.scene);
+        let (lo, hi) = ctx.scene.static_box();
         AnchorSet::new(Quantizer::new(lo, hi))
     });
 
@@ -164,7 +164,7 @@ pub fn update(
         pm,
         k,
         params: *ap,
-        scale: static_radius(ctx.scene),
+        scale: ctx.scene.static_radius(),
         importance: importons.as_ref(),
     };
 
@@ -441,26 +441,4 @@ fn dominant(strata: &[Stratum], rad: &[Vec3]) -> Option<AnchorId> {
         }
     }
     best.0
-}
-
-fn static_box(frame: &FrameScene) -> (Vec3, Vec3) {
-    let mut lo = Vec3::splat(f32::MAX);
-    let mut hi = Vec3::splat(f32::MIN);
-    for t in &frame.static_geometry.triangles {
-        for v in [t.v0, t.v1, t.v2] {
-            lo = lo.min(v.into());
-            hi = hi.max(v.into());
-        }
-    }
-    if lo.x > hi.x {
-        (Vec3::ZERO, Vec3::ONE)
-    } else {
-        (lo, hi)
-    }
-}
-
-/// Radius of the sphere around the static geometry's box: the unit of relative distances.
-fn static_radius(frame: &FrameScene) -> f32 {
-    let (lo, hi) = static_box(frame);
-    (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE)
 }

@@ -90,6 +90,7 @@ pub fn render(
         params.photons,
         ctx.seed,
         params.max_bounces,
+        params.max_photon_radius,
     );
     st.photon_tracing = t.elapsed().as_secs_f64();
     st.photons = pm.photons.len() as u64;

@@ -45,6 +45,9 @@ pub struct GiParams {
     pub k: u32,
     /// Photon bounces at most.
     pub max_bounces: u32,
+    /// No photon look-up reaches farther than this fraction of the static scene's bounding
+    /// radius ([`crate::photon::PhotonMap::max_radius`]). Default 0.05 in every preset.
+    pub max_photon_radius: f32,
     pub cache: CacheParams,
     /// `anchors`: anchor density and reuse heuristics.
     pub anchors: AnchorParams,
@@ -78,6 +81,10 @@ impl Preset {
     }
 }
 
+/// Default of [`GiParams::max_photon_radius`]: well above the k-nearest radius where photons
+/// are not rare, well below the size of a room in a house.
+pub const MAX_PHOTON_RADIUS: f32 = 0.05;
+
 impl GiParams {
     pub fn preset(p: Preset) -> Self {
         let cache = CacheParams::default();
@@ -86,6 +93,7 @@ impl GiParams {
                 photons: 50_000,
                 k: 32,
                 max_bounces: 8,
+                max_photon_radius: MAX_PHOTON_RADIUS,
                 cache: CacheParams {
                     strata: [8, 24],
                     error: 0.4,
@@ -101,6 +109,7 @@ impl GiParams {
                 photons: 200_000,
                 k: 64,
                 max_bounces: 12,
+                max_photon_radius: MAX_PHOTON_RADIUS,
                 cache,
                 anchors: AnchorParams::default(),
                 path_samples: 256,
@@ -110,6 +119,7 @@ impl GiParams {
                 photons: 800_000,
                 k: 100,
                 max_bounces: 16,
+                max_photon_radius: MAX_PHOTON_RADIUS,
                 cache: CacheParams {
                     strata: [30, 60],
                     error: 0.15,

@@ -10,6 +10,15 @@
 //!
 //! The kd-tree is kiddo's immutable tree: a maintained crate doing exactly the k-nearest
 //! query the estimate needs.
+//!
+//! Every look-up is bounded: no photon farther than [`PhotonMap::max_radius`] from the
+//! query point counts (DESIGN.md, Numerics), so light sealed behind closed geometry cannot
+//! leak through it into an estimate, and a query far from every photon costs little. Where
+//! fewer than k photons lie within the bound, the estimate is the density over the
+//! maximum disc. Estimates gather over a disc, not a sphere (Jensen 2001, §7.2): a photon
+//! off the query's tangent plane by more than [`DISC_THICKNESS`] of the radius lies on
+//! another surface — a lamp 0.9 units under a ceiling must not count the dense photons
+//! its back side leaves on the ceiling as light arriving at its front.
 
 pub mod precomputed;
 
@@ -56,7 +65,14 @@ pub struct PhotonMap {
     pub emitted: u32,
     /// Total flux emitted by all lights (luminance-weighted sum is what selection uses).
     pub emitted_power: Vec3,
+    /// No look-up reaches farther than this (scene units; see the module doc).
+    pub max_radius: f32,
 }
+
+/// Half the thickness of the disc an estimate gathers over, as a fraction of its radius: a
+/// photon farther than this from the query's tangent plane lies on another surface (on a
+/// curved one, only beyond ~30° of arc). Jensen 2001, §7.2 compresses the sphere likewise.
+pub const DISC_THICKNESS: f32 = 0.25;
 
 /// An emitting light as photon tracing sees it.
 enum Source {
@@ -103,13 +119,16 @@ pub fn bounding_sphere(frame: &FrameScene) -> (Vec3, f32) {
 
 impl PhotonMap {
     /// Traces `count` photons from every light of `frame`. `seed` selects the sequence;
-    /// it must not depend on the frame for temporal coherence.
+    /// it must not depend on the frame for temporal coherence. Look-ups reach
+    /// `max_radius` × the static geometry's bounding radius at most
+    /// ([`FrameScene::static_radius`]: the same in every frame).
     pub fn trace(
         frame: &FrameScene,
         m: Materials,
         count: u32,
         seed: u32,
         max_bounces: u32,
+        max_radius: f32,
     ) -> PhotonMap {
         let (centre, radius) = bounding_sphere(frame);
         // Emitted flux per light.
@@ -141,6 +160,7 @@ impl PhotonMap {
             tree: None,
             emitted: count,
             emitted_power,
+            max_radius: max_radius * frame.static_radius(),
         };
         if total <= 0.0 || count == 0 {
             return map;
@@ -196,37 +216,40 @@ impl PhotonMap {
         self.irradiance_and_radius(x, n, k).0
     }
 
-    /// [`PhotonMap::irradiance`] and the squared distance to the k-th photon: the estimate
-    /// depends on no photon farther away.
+    /// [`PhotonMap::irradiance`] and the squared radius of the disc it gathered over: the
+    /// estimate depends on no photon farther away. The disc reaches the k-th nearest photon
+    /// within [`PhotonMap::max_radius`], or that radius where fewer lie within it.
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
+        let r2_max = self.max_radius * self.max_radius;
         let Some(tree) = &self.tree else {
-            return (Vec3::ZERO, f32::INFINITY);
+            return (Vec3::ZERO, r2_max);
         };
-        let found = tree
-            .nearest_n::<SquaredEuclidean>(&x.to_array(), NonZero::new(k.max(1)).expect("k >= 1"));
-        // Photons on surfaces facing elsewhere (across a corner) do not count, but the disc
-        // still reaches the k-th photon: a radius set by the few accepted ones would be
-        // unstable where almost none are (Jensen 2001, §7.2).
-        let mut sum = Vec3::ZERO;
-        let mut r2: f32 = 0.0;
-        for nb in &found {
-            let p = &self.photons[nb.item as usize];
-            r2 = r2.max(nb.distance);
-            if p.normal.dot(n) > 0.5 {
-                sum += p.power;
-            }
+        let k = k.max(1);
+        let found = tree.nearest_n_within::<SquaredEuclidean>(
+            &x.to_array(),
+            r2_max,
+            NonZero::new(k).expect("k >= 1"),
+            false,
+        );
+        let r2 = if found.len() < k {
+            r2_max
+        } else {
+            found.iter().map(|nb| nb.distance).fold(0.0, f32::max)
+        };
+        if !(r2 > 0.0) {
+            return (Vec3::ZERO, r2_max);
         }
-        if found.len() < k || !(r2 > 0.0) {
-            // Fewer than k photons in the map: any new photon would change the estimate.
-            return (
-                if r2 > 0.0 {
-                    sum / (PI * r2)
-                } else {
-                    Vec3::ZERO
-                },
-                f32::INFINITY,
-            );
-        }
+        // Photons on surfaces facing elsewhere (across a corner) or off the disc (on a
+        // parallel surface close by) do not count, but the disc still reaches the k-th
+        // photon: a radius set by the few accepted ones would be unstable where almost none
+        // are (Jensen 2001, §7.2).
+        let thickness = DISC_THICKNESS * r2.sqrt();
+        let sum: Vec3 = found
+            .iter()
+            .map(|nb| &self.photons[nb.item as usize])
+            .filter(|p| p.normal.dot(n) > 0.5 && (p.position - x).dot(n).abs() <= thickness)
+            .map(|p| p.power)
+            .sum();
         (sum / (PI * r2), r2)
     }
 
@@ -265,11 +288,13 @@ impl PhotonMap {
             .collect()
     }
 
-    /// Index of the photon nearest to `x`, if any.
+    /// Index of the photon nearest to `x` within [`PhotonMap::max_radius`], if any.
     pub fn nearest(&self, x: Vec3) -> Option<usize> {
-        self.tree
-            .as_ref()
-            .map(|t| t.nearest_one::<SquaredEuclidean>(&x.to_array()).item as usize)
+        let t = self.tree.as_ref()?;
+        let r2_max = self.max_radius * self.max_radius;
+        t.nearest_n_within::<SquaredEuclidean>(&x.to_array(), r2_max, NonZero::<usize>::MIN, false)
+            .first()
+            .map(|nb| nb.item as usize)
     }
 
     /// Total flux stored in the map.

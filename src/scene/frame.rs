@@ -322,6 +322,31 @@ impl FrameScene {
         }
     }
 
+    /// Bounding box of the static geometry (the unit box when there is none): the same in
+    /// every frame.
+    pub fn static_box(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::MAX);
+        let mut hi = Vec3::splat(f32::MIN);
+        for t in &self.static_geometry.triangles {
+            for v in [t.v0, t.v1, t.v2] {
+                lo = lo.min(v.into());
+                hi = hi.max(v.into());
+            }
+        }
+        if lo.x > hi.x {
+            (Vec3::ZERO, Vec3::ONE)
+        } else {
+            (lo, hi)
+        }
+    }
+
+    /// Radius of the sphere around [`FrameScene::static_box`]: the unit of the relative
+    /// distances in the settings (D_max, photon search radii).
+    pub fn static_radius(&self) -> f32 {
+        let (lo, hi) = self.static_box();
+        (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE)
+    }
+
     /// Largest absolute coordinate of any vertex: the scene's scale for error bounds.
     pub fn extent(&self) -> f32 {
         let m = |g: &Geometry| {

@@ -301,7 +301,14 @@ fn kept_anchor_estimates_match_fresh_ones() {
         textures: &scene.textures,
     };
     let params = job.method.params();
-    let pm = PhotonMap::trace(&fs, m, params.photons, job.seed, params.max_bounces);
+    let pm = PhotonMap::trace(
+        &fs,
+        m,
+        params.photons,
+        job.seed,
+        params.max_bounces,
+        params.max_photon_radius,
+    );
     let set = state.anchors.as_ref().unwrap();
     let k = params.anchors.anchor_k(params.k as usize);
     let mut checked = 0;
