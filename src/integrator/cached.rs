@@ -298,7 +298,8 @@ impl Shade for CachedShading<'_> {
     ) {
         let sp = &hit.sp;
         let t0 = Instant::now();
-        let l_direct = hit.direct_light(ctx, self.light_samples, &mut row.counts.shadow_rays);
+        let f = hit.brdf(ctx);
+        let l_direct = hit.direct_light(ctx, f, self.light_samples, &mut row.counts.shadow_rays);
         let t1 = Instant::now();
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
@@ -318,12 +319,11 @@ impl Shade for CachedShading<'_> {
         acc.note_cache(value.anchor_id, value.reshot);
         row.t_direct += (t1 - t0).as_secs_f64();
         row.t_interp += t1.elapsed().as_secs_f64();
-        let albedo = sp.albedo(ctx.materials) * FRAC_1_PI;
         acc.hit(
             hit.depth(ctx),
             sp.emission(ctx.materials),
             l_direct,
-            albedo * value.irradiance,
+            f * value.irradiance,
         );
     }
 }

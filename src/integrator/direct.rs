@@ -24,7 +24,12 @@ impl Shade for Direct {
         hit: &CameraHit,
         acc: &mut Accumulator,
     ) {
-        let direct = hit.direct_light(ctx, self.light_samples, &mut counts.shadow_rays);
+        let direct = hit.direct_light(
+            ctx,
+            hit.brdf(ctx),
+            self.light_samples,
+            &mut counts.shadow_rays,
+        );
         let emission = hit.sp.emission(ctx.materials);
         acc.hit(hit.depth(ctx), emission, direct, Vec3::ZERO);
     }

@@ -174,25 +174,30 @@ impl CameraHit<'_> {
         self.sp.hit.t * self.dir.dot(ctx.scene.camera.forward)
     }
 
-    /// Direct light the hit reflects towards the camera: albedo/π × the irradiance from
-    /// every light, by shadow rays (`light_samples` per emissive-triangle estimate).
+    /// The hit's Lambertian BRDF: albedo / π.
+    pub fn brdf(&self, ctx: &FrameContext) -> Vec3 {
+        self.sp.albedo(ctx.materials) * FRAC_1_PI
+    }
+
+    /// Direct light the hit reflects towards the camera through its BRDF `f`
+    /// ([`CameraHit::brdf`]): f × the irradiance from every light, by shadow rays
+    /// (`light_samples` per emissive-triangle estimate).
     pub fn direct_light(
         &self,
         ctx: &FrameContext,
+        f: Vec3,
         light_samples: u32,
         shadow_rays: &mut u64,
     ) -> Vec3 {
-        self.sp.albedo(ctx.materials)
-            * FRAC_1_PI
-            * direct_irradiance(
-                ctx.scene,
-                &self.sp,
-                self.sampler,
-                self.sample,
-                light_samples,
-                shading_dims().take(3),
-                shadow_rays,
-            )
+        f * direct_irradiance(
+            ctx.scene,
+            &self.sp,
+            self.sampler,
+            self.sample,
+            light_samples,
+            shading_dims().take(3),
+            shadow_rays,
+        )
     }
 }
 
