@@ -87,6 +87,7 @@ fn furnace_indirect_matches_closed_form() {
     for (method, extra, tol) in [
         ("brute-force", r#","preset":"draft","photons":100000"#, 0.05),
         ("precomputed", r#","preset":"draft","photons":100000"#, 0.05),
+        ("anchors", r#","preset":"draft","photons":100000"#, 0.05),
         (
             "path-trace",
             r#","preset":"draft","path_samples":64,"path_depth":24"#,
@@ -112,6 +113,35 @@ fn furnace_indirect_matches_closed_form() {
         assert!(
             (direct - f64::from(rho * le)).abs() / f64::from(rho * le) < 0.02,
             "{method}: direct {direct}"
+        );
+    }
+}
+
+/// The anchor method keeps the furnace's answer after its first frame too, when the
+/// strata read their anchors' re-estimated L_i instead of gathering.
+#[test]
+fn furnace_indirect_of_anchors_holds_over_frames() {
+    let dir = tempdir();
+    let (rho, le) = (0.5f32, 2.0f32);
+    let want = (rho * rho * le / (1.0 - rho)) as f64;
+    let job = furnace(
+        dir.path(),
+        rho,
+        le,
+        1.0,
+        "anchors",
+        r#","preset":"draft","photons":100000"#,
+    );
+    for (img, stats) in super::anchors::render_sequence(&job, 0..3) {
+        let ind = mean(&img, |i| img.indirect[i][1]);
+        eprintln!(
+            "frame {}: indirect {ind:.4} (closed form {want:.4})",
+            stats.frame
+        );
+        assert!(
+            (ind - want).abs() / want < 0.05,
+            "frame {}: indirect {ind} vs {want}",
+            stats.frame
         );
     }
 }
