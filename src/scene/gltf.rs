@@ -512,10 +512,19 @@ impl<'a> Reader<'a> {
 
     /// Reads `nodes` (glTF 2.0 §3.5.2), links each to its parent, and returns them with the
     /// roots of the default scene (or of the first scene, or the parentless nodes).
-    fn nodes(&self) -> Result<(Vec<Node>, Vec<usize>)> {
+    fn nodes(&mut self) -> Result<(Vec<Node>, Vec<usize>)> {
         let mut nodes: Vec<Node> = Vec::new();
         for n in self.doc.nodes() {
-            nodes.push(self.node(&n)?);
+            let node = self.node(&n)?;
+            if node.extras_tag.is_none()
+                && let Some(key) = misspelt_motion_key(n.extras())
+            {
+                let at = name_of("nodes", n.index(), n.name());
+                self.warn(format_args!(
+                    "{at}: extras key \"{key}\" is ignored; the motion tag's key is \"{MOTION_KEY}\""
+                ));
+            }
+            nodes.push(node);
         }
         for i in 0..nodes.len() {
             for c in nodes[i].children.clone() {
@@ -698,6 +707,22 @@ pub fn motion_tag(extras: &gltf::json::Extras) -> std::result::Result<Option<Mot
         Some(serde_json::Value::String(s)) if s == "dynamic" => Ok(Some(Motion::Dynamic)),
         Some(v) => Err(format!("must be \"static\" or \"dynamic\", got {v}")),
     }
+}
+
+/// An extras key that looks like a misspelt motion tag (`Motion`, `anchorage_motion`,
+/// `motion ` ...): the key, when the extras hold no `motion` key but one containing it,
+/// case and surrounding characters aside.
+fn misspelt_motion_key(extras: &gltf::json::Extras) -> Option<String> {
+    let raw = extras.as_ref()?;
+    let serde_json::Value::Object(map) = serde_json::from_str(raw.get()).ok()? else {
+        return None;
+    };
+    if map.contains_key(MOTION_KEY) {
+        return None;
+    }
+    map.keys()
+        .find(|k| k.to_lowercase().contains(MOTION_KEY))
+        .cloned()
 }
 
 /// Percent-decoding of relative URIs (glTF URIs are RFC 3986).

@@ -219,3 +219,32 @@ fn blender_export_custom_properties_are_tags() {
         assert!(text.contains(want), "missing {want:?} in\n{text}");
     }
 }
+
+/// A key one letter off the motion tag is not a tag, but it is not silent either: the
+/// loader warns, naming the node and the key.
+#[test]
+fn misspelt_motion_keys_are_warned_about() {
+    let s = scene(
+        [
+            r#"{"Motion":"dynamic"}"#,
+            r#"{"anchorage_motion":"static"}"#,
+            r#"{"motion":"static","motion_note":"hand-tagged"}"#,
+            r#"{"notes":"motionless"}"#,
+        ],
+        3,
+        "{}",
+    )
+    .unwrap();
+    let w = s.warnings();
+    assert_eq!(w.len(), 2, "{w:?}");
+    assert!(
+        w[0].contains("nodes[0] \"n0\"") && w[0].contains("\"Motion\""),
+        "{w:?}"
+    );
+    assert!(
+        w[1].contains("nodes[1] \"n1\"") && w[1].contains("\"anchorage_motion\""),
+        "{w:?}"
+    );
+    // Misspelt keys are not tags: node 0 falls back to the default (not animated: static).
+    assert_eq!(s.layers[0].nodes[0].why, TagSource::DefaultStatic);
+}
