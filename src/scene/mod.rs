@@ -256,6 +256,33 @@ impl Layer {
         }
     }
 
+    /// The node a job file names, among those `accept`s: by its name, or as `nodes[i]` (for
+    /// unnamed nodes, as `inspect` prints them) when no node has that name. An error text
+    /// when there is none, or when several share the name.
+    pub fn find_node(&self, name: &str, accept: impl Fn(&Node) -> bool) -> Result<usize, String> {
+        let named: Vec<usize> = (0..self.nodes.len())
+            .filter(|&i| self.nodes[i].name == name && accept(&self.nodes[i]))
+            .collect();
+        match named[..] {
+            [i] => return Ok(i),
+            [] => {}
+            _ => {
+                let list: Vec<String> = named.iter().map(|i| format!("nodes[{i}]")).collect();
+                return Err(format!(
+                    "{} nodes are named \"{name}\" in {} ({}); name one as nodes[i]",
+                    named.len(),
+                    self.path.display(),
+                    list.join(", ")
+                ));
+            }
+        }
+        name.strip_prefix("nodes[")
+            .and_then(|r| r.strip_suffix(']'))
+            .and_then(|i| i.parse::<usize>().ok())
+            .filter(|&i| i < self.nodes.len() && accept(&self.nodes[i]))
+            .ok_or_else(|| format!("no node named \"{name}\" in {}", self.path.display()))
+    }
+
     /// For each node, the first animation that moves it (its own channels or an ancestor's,
     /// or for a skinned mesh, any of its joints).
     fn moved_by(&self) -> Vec<Option<String>> {
@@ -300,14 +327,12 @@ impl Layer {
         desc_file: &Path,
         layer: usize,
     ) -> Result<()> {
-        for name in overrides.keys() {
-            if !self.nodes.iter().any(|n| &n.name == name) {
-                return Err(Error::input(
-                    desc_file,
-                    format!("scene[{layer}].tags.{name}"),
-                    format!("no node named \"{name}\" in {}", self.path.display()),
-                ));
-            }
+        let mut by_node: HashMap<usize, Motion> = HashMap::new();
+        for (name, &m) in overrides {
+            let i = self.find_node(name, |_| true).map_err(|msg| {
+                Error::input(desc_file, format!("scene[{layer}].tags.{name}"), msg)
+            })?;
+            by_node.insert(i, m);
         }
         let moved = self.moved_by();
         let n = self.nodes.len();
@@ -321,7 +346,7 @@ impl Layer {
             }
             let label = self.node_label(i);
             let node = &self.nodes[i];
-            let (motion, why) = if let Some(&m) = overrides.get(&node.name) {
+            let (motion, why) = if let Some(&m) = by_node.get(&i) {
                 (m, TagSource::Job)
             } else if let Some(m) = node.extras_tag {
                 (m, TagSource::Extras)
@@ -474,27 +499,7 @@ impl Scene {
             layers.push(layer);
         }
         let camera = match desc.camera {
-            Some(CameraSpec::Node(node)) => Some(
-                layers
-                    .iter()
-                    .enumerate()
-                    .find_map(|(li, l)| {
-                        l.nodes
-                            .iter()
-                            .position(|n| &n.name == node && n.camera.is_some())
-                            .map(|ni| CameraChoice::Node {
-                                layer: li,
-                                node: ni,
-                            })
-                    })
-                    .ok_or_else(|| {
-                        Error::input(
-                            desc.file,
-                            "camera.node",
-                            format!("no camera node named \"{node}\" in the scene"),
-                        )
-                    })?,
-            ),
+            Some(CameraSpec::Node(node)) => Some(camera_node(&layers, node, desc.file)?),
             Some(CameraSpec::LookAt(l)) => Some(CameraChoice::LookAt(*l)),
             None => layers.iter().enumerate().find_map(|(li, l)| {
                 l.nodes
@@ -627,6 +632,46 @@ impl Scene {
             dynamic_bvh: start.elapsed().as_secs_f64(),
         };
         (frame, timings)
+    }
+}
+
+/// The camera node a job names, by name or as `nodes[i]`, over every layer: exactly one
+/// layer may hold it.
+fn camera_node(layers: &[Layer], name: &str, file: &Path) -> Result<CameraChoice> {
+    let bad = |message: String| Error::input(file, "camera.node", message);
+    let found: Vec<(usize, usize)> = layers
+        .iter()
+        .enumerate()
+        .filter_map(|(li, l)| {
+            l.find_node(name, |n| n.camera.is_some())
+                .ok()
+                .map(|ni| (li, ni))
+        })
+        .collect();
+    match found[..] {
+        [(layer, node)] => Ok(CameraChoice::Node { layer, node }),
+        [] => {
+            // A name shared inside one layer is reported as that layer's error.
+            for l in layers {
+                if let Err(e) = l.find_node(name, |n| n.camera.is_some())
+                    && e.contains("nodes are named")
+                {
+                    return Err(bad(e));
+                }
+            }
+            Err(bad(format!("no camera node named \"{name}\" in the scene")))
+        }
+        _ => {
+            let list: Vec<String> = found
+                .iter()
+                .map(|(li, ni)| format!("scene[{li}] nodes[{ni}]"))
+                .collect();
+            Err(bad(format!(
+                "{} camera nodes match \"{name}\" ({}); give each a unique name",
+                found.len(),
+                list.join(", ")
+            )))
+        }
     }
 }
 

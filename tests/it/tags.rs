@@ -10,6 +10,16 @@ use anchorage::scene::{Scene, TagSource};
 /// Every node instances one triangle. `extras` are JSON per node; `animated` is the node an
 /// animation translates.
 fn scene(extras: [&str; 4], animated: usize, tags: &str) -> anchorage::Result<Scene> {
+    scene_named(["n0", "n1", "n2", "n3"], extras, animated, tags)
+}
+
+/// [`scene`] with the nodes' names given.
+fn scene_named(
+    names: [&str; 4],
+    extras: [&str; 4],
+    animated: usize,
+    tags: &str,
+) -> anchorage::Result<Scene> {
     let dir = tempdir();
     let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
     let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
@@ -18,8 +28,8 @@ fn scene(extras: [&str; 4], animated: usize, tags: &str) -> anchorage::Result<Sc
     let b64 = base64_encode(&bin);
     let node = |i: usize, children: &str| {
         format!(
-            r#"{{"name":"n{i}","mesh":0,"children":[{children}],"extras":{}}}"#,
-            extras[i]
+            r#"{{"name":"{}","mesh":0,"children":[{children}],"extras":{}}}"#,
+            names[i], extras[i]
         )
     };
     let gltf = format!(
@@ -247,4 +257,65 @@ fn misspelt_motion_keys_are_warned_about() {
     );
     // Misspelt keys are not tags: node 0 falls back to the default (not animated: static).
     assert_eq!(s.layers[0].nodes[0].why, TagSource::DefaultStatic);
+}
+
+/// Unnamed nodes are addressed as `inspect` prints them, `nodes[i]`; a name several nodes
+/// share is an error that lists them, not the first one silently.
+#[test]
+fn tag_overrides_address_nodes_by_index_and_refuse_ambiguous_names() {
+    let s = scene_named(
+        ["", "", "", ""],
+        ["null"; 4],
+        1,
+        r#"{"nodes[3]":"dynamic"}"#,
+    )
+    .unwrap();
+    assert_eq!(s.layers[0].nodes[3].motion, Motion::Dynamic);
+    assert_eq!(s.layers[0].nodes[3].why, TagSource::Job);
+    let e = scene_named(
+        ["a", "b", "dup", "dup"],
+        ["null"; 4],
+        1,
+        r#"{"dup":"dynamic"}"#,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("scene[0].tags.dup") && e.contains("nodes[2], nodes[3]"),
+        "{e}"
+    );
+    let e = scene(["null"; 4], 1, r#"{"nodes[9]":"dynamic"}"#)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no node named \"nodes[9]\""), "{e}");
+}
+
+/// Camera nodes too: an unnamed one as `nodes[i]`, and a name two cameras share refused.
+#[test]
+fn camera_nodes_by_index_and_ambiguous_names() {
+    let dir = tempdir();
+    std::fs::write(
+        dir.path().join("c.gltf"),
+        r#"{"asset":{"version":"2.0"},"scenes":[{"nodes":[0,1,2]}],
+        "nodes":[{"camera":0},{"name":"cam","camera":0},{"name":"cam","camera":0}],
+        "cameras":[{"type":"perspective","perspective":{"yfov":0.7,"znear":0.1}}]}"#,
+    )
+    .unwrap();
+    let load = |node: &str| {
+        job_from_json(
+            &dir.path().join("j.json"),
+            &format!(r#"{{"scene":[{{"path":"c.gltf"}}],"camera":{{"node":"{node}"}}}}"#),
+        )
+        .and_then(|job| job.load_scene_layers())
+    };
+    let s = load("nodes[0]").unwrap();
+    assert!(matches!(
+        s.camera,
+        Some(anchorage::scene::CameraChoice::Node { layer: 0, node: 0 })
+    ));
+    let e = load("cam").unwrap_err().to_string();
+    assert!(
+        e.contains("camera.node") && e.contains("nodes[1], nodes[2]"),
+        "{e}"
+    );
 }
