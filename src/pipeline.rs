@@ -14,7 +14,7 @@ use crate::integrator::{FrameContext, FrameImage, direct, path};
 use crate::interaction::Materials;
 use crate::job::{Job, Method};
 use crate::output;
-use crate::scene::Scene;
+use crate::scene::{Scene, StaticSet};
 use crate::session::{FrameState, Resources};
 use crate::stats::{AnchorReuse, Counts, FrameStats, Memory, Timings};
 use crate::visibility::{self, CpuVisibility};
@@ -152,13 +152,18 @@ pub fn render_frame(
 /// The resources of a render of `job`: the static set with its BVH and, for the anchor
 /// method, the visibility implementation that `render.visibility` chooses.
 pub fn new_resources(job: &Job, scene: &Scene) -> Result<Resources> {
+    with_statics(job, scene.statics())
+}
+
+/// [`new_resources`] around a static set already built.
+fn with_statics(job: &Job, statics: StaticSet) -> Result<Resources> {
     let visibility = if job.method.name == Method::Anchors {
         visibility::gpu::choose(job.render.visibility).map_err(|e| Error::Render(e.to_string()))?
     } else {
         Box::new(CpuVisibility)
     };
     Ok(Resources {
-        statics: scene.statics(),
+        statics,
         visibility,
     })
 }
@@ -186,9 +191,11 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
 /// The output directory is checked before the first frame renders.
 pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
     output::check_output_dir(&job.out_dir)?;
+    // The static set's time is the stats' `static_bvh`; the adapter probe is not in it.
     let start = Instant::now();
-    let resources = new_resources(job, scene)?;
+    let statics = scene.statics();
     let static_time = start.elapsed().as_secs_f64();
+    let resources = with_statics(job, statics)?;
     let frames: Vec<i32> = (job.frames.start..=job.frames.end).collect();
     let bar = (opts.progress == Progress::Auto && std::io::stderr().is_terminal()).then(|| {
         let b = indicatif::ProgressBar::new(frames.len() as u64);

@@ -16,14 +16,30 @@ use crate::geom::{Geometry, Motion, Triangle, TriangleShading};
 pub struct StaticSet {
     pub geometry: Arc<Geometry>,
     pub bvh: Arc<StaticBvh>,
+    /// Bounding box of the static geometry (the unit box when there is none).
+    pub bounds: (Vec3, Vec3),
 }
 
 impl StaticSet {
     pub fn new(geometry: Geometry) -> Self {
         let bvh = Arc::new(StaticBvh::build(&geometry));
+        let mut lo = Vec3::splat(f32::MAX);
+        let mut hi = Vec3::splat(f32::MIN);
+        for t in &geometry.triangles {
+            for v in [t.v0, t.v1, t.v2] {
+                lo = lo.min(v.into());
+                hi = hi.max(v.into());
+            }
+        }
+        let bounds = if lo.x > hi.x {
+            (Vec3::ZERO, Vec3::ONE)
+        } else {
+            (lo, hi)
+        };
         StaticSet {
             geometry: Arc::new(geometry),
             bvh,
+            bounds,
         }
     }
 }
@@ -285,6 +301,8 @@ pub struct FrameScene {
     pub lights: Vec<PunctualLight>,
     pub emitters: Emitters,
     pub camera: FrameCamera,
+    /// [`StaticSet::bounds`], computed once per render.
+    static_bounds: (Vec3, Vec3),
 }
 
 impl FrameScene {
@@ -312,6 +330,7 @@ impl FrameScene {
             lights,
             emitters,
             camera,
+            static_bounds: statics.bounds,
         }
     }
 
@@ -325,19 +344,7 @@ impl FrameScene {
     /// Bounding box of the static geometry (the unit box when there is none): the same in
     /// every frame.
     pub fn static_box(&self) -> (Vec3, Vec3) {
-        let mut lo = Vec3::splat(f32::MAX);
-        let mut hi = Vec3::splat(f32::MIN);
-        for t in &self.static_geometry.triangles {
-            for v in [t.v0, t.v1, t.v2] {
-                lo = lo.min(v.into());
-                hi = hi.max(v.into());
-            }
-        }
-        if lo.x > hi.x {
-            (Vec3::ZERO, Vec3::ONE)
-        } else {
-            (lo, hi)
-        }
+        self.static_bounds
     }
 
     /// Radius of the sphere around [`FrameScene::static_box`]: the unit of the relative
