@@ -97,6 +97,23 @@ pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
         .map(|h| SurfacePoint::new(frame, h, o, d))
 }
 
+/// The surface the camera sees through film position `(x, y)` (in `[0, 1]²`, y down), between
+/// its clip planes, and the camera ray's direction.
+pub fn trace_camera(frame: &FrameScene, x: f32, y: f32) -> (Vec3, Option<SurfacePoint>) {
+    let r = frame.camera.ray(x, y);
+    let hit = frame
+        .accel
+        .closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            r.origin,
+            r.dir,
+            r.tmax,
+        )
+        .map(|h| SurfacePoint::new(frame, h, r.origin, r.dir));
+    (r.dir, hit)
+}
+
 /// Irradiance at `x` from one punctual light, shadow ray included (`KHR_lights_punctual`).
 fn punctual_irradiance(
     frame: &FrameScene,

@@ -17,7 +17,7 @@ use crate::anchor::AnchorParams;
 use crate::error::{Error, Result};
 use crate::geom::Motion;
 use crate::integrator::{GiParams, Preset};
-use crate::scene::{CameraSpec, LayerDesc, LookAt, Scene, SceneDesc};
+use crate::scene::{CameraSpec, Clip, LayerDesc, LookAt, Scene, SceneDesc};
 pub use crate::visibility::VisibilityChoice;
 
 /// The job file as written on disk.
@@ -77,6 +77,11 @@ pub struct LayerFile {
     /// Motion tags by node name; they win over tags in the file.
     #[serde(default)]
     pub tags: BTreeMap<String, Motion>,
+    /// The animation clips that play, by name or as `animations[i]`. Default: all of them
+    /// (with a warning where two drive the same property of a node: the first in the file
+    /// wins). `[]` plays none.
+    #[serde(default)]
+    pub animations: Option<Vec<String>>,
 }
 
 /// A layer transform: scale, then rotation, then translation.
@@ -138,6 +143,13 @@ pub enum CameraFile {
         /// Vertical field of view in degrees, in (0, 180).
         #[schemars(extend("exclusiveMinimum" = 0, "exclusiveMaximum" = 180))]
         yfov_deg: f32,
+        /// Camera rays see nothing nearer than this depth along the view axis. Default 0.
+        #[serde(default)]
+        #[schemars(range(min = 0))]
+        znear: f32,
+        /// ... nor farther than this one. Default: no far plane.
+        #[serde(default)]
+        zfar: Option<f32>,
     },
 }
 
@@ -161,6 +173,11 @@ pub struct OutputFile {
     /// File name stem: frames are `NAME.####.exr`. Default: the job file's stem.
     #[serde(default)]
     pub name: Option<String>,
+    /// Exposure of the PNG previews in stops (`--exposure`): pixel values are scaled by
+    /// 2^exposure before the sRGB curve. The EXRs stay in scene radiance. Default 0.
+    #[serde(default)]
+    #[schemars(range(min = -64, max = 64))]
+    pub exposure: f32,
 }
 
 /// Sampling settings ([`RenderSettings::default`] gives the defaults).
@@ -254,9 +271,12 @@ pub struct MethodSettings {
     /// `path-trace` samples per pixel. Default: the preset's (64, 256, 1024).
     #[schemars(range(min = 1, max = 1_048_576))]
     pub path_samples: Option<u32>,
-    /// `path-trace` maximum path length. Default: the preset's (8, 12, 16).
-    #[schemars(range(min = 1, max = 40))]
+    /// `path-trace` maximum path length (Russian roulette ends most paths sooner). Default 64.
+    #[schemars(range(min = 1, max = 1024))]
     pub path_depth: Option<u32>,
+    /// Photon bounces at most (Russian roulette ends most photon paths sooner). Default 64.
+    #[schemars(range(min = 1, max = 1024))]
+    pub photon_bounces: Option<u32>,
     /// `anchors` settings (each key defaults as documented in README.md).
     pub anchors: Option<AnchorParams>,
 }
@@ -294,6 +314,9 @@ impl MethodSettings {
         }
         if let Some(v) = self.path_depth {
             p.path_depth = v;
+        }
+        if let Some(v) = self.photon_bounces {
+            p.photon_bounces = v;
         }
         if let Some(v) = self.anchors {
             p.anchors = v;
@@ -334,8 +357,11 @@ impl MethodSettings {
         if p.path_samples == 0 || p.path_samples > 1 << 20 {
             return bad("path_samples", "must be 1..=1048576");
         }
-        if p.path_depth == 0 || p.path_depth > 40 {
-            return bad("path_depth", "must be 1..=40");
+        if p.path_depth == 0 || p.path_depth > 1024 {
+            return bad("path_depth", "must be 1..=1024");
+        }
+        if p.photon_bounces == 0 || p.photon_bounces > 1024 {
+            return bad("photon_bounces", "must be 1..=1024");
         }
         let a = p.anchors;
         if !(a.d_max > 0.0 && a.d_max <= 1.0) {
@@ -381,6 +407,8 @@ pub struct Overrides {
     pub out_dir: Option<PathBuf>,
     pub method: Option<Method>,
     pub visibility: Option<VisibilityChoice>,
+    /// Preview exposure in stops.
+    pub exposure: Option<f32>,
 }
 
 /// A validated job: paths resolved, ranges checked.
@@ -396,6 +424,8 @@ pub struct Job {
     pub frame_offset: f64,
     pub out_dir: PathBuf,
     pub name: String,
+    /// Preview exposure in stops ([`OutputFile::exposure`]).
+    pub exposure: f32,
     pub seed: u32,
     pub render: RenderSettings,
     pub method: MethodSettings,
@@ -457,7 +487,7 @@ impl Job {
         method.validate(path)?;
         let layers = layers(path, base, &file.scene)?;
         let camera = file.camera.map(|c| camera(path, c)).transpose()?;
-        let (out_dir, name) = output(path, base, file.output, overrides)?;
+        let (out_dir, name, exposure) = output(path, base, file.output, overrides)?;
         Ok(Job {
             path: path.to_path_buf(),
             layers,
@@ -469,6 +499,7 @@ impl Job {
             frame_offset: file.frame_offset,
             out_dir,
             name,
+            exposure,
             seed: file.seed,
             render,
             method,
@@ -584,6 +615,7 @@ fn layers(path: &Path, base: &Path, scene: &[LayerFile]) -> Result<Vec<LayerDesc
                 path: base.join(&l.path),
                 transform: m,
                 tags: l.tags.clone(),
+                animations: l.animations.clone(),
             })
         })
         .collect()
@@ -591,20 +623,34 @@ fn layers(path: &Path, base: &Path, scene: &[LayerFile]) -> Result<Vec<LayerDesc
 
 /// The job's camera, checked: a node name, or a pinhole camera that can look somewhere.
 fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
-    let (position, look_at, up, yfov_deg) = match c {
+    let (position, look_at, up, yfov_deg, znear, zfar) = match c {
         CameraFile::Node { node } => return Ok(CameraSpec::Node(node)),
         CameraFile::LookAt {
             position,
             look_at,
             up,
             yfov_deg,
+            znear,
+            zfar,
         } => (
             Vec3::from(position),
             Vec3::from(look_at),
             Vec3::from(up),
             yfov_deg,
+            znear,
+            zfar.unwrap_or(f32::INFINITY),
         ),
     };
+    if !(znear.is_finite() && znear >= 0.0) {
+        return Err(Error::input(path, "camera.znear", "must be finite and ≥ 0"));
+    }
+    if zfar.is_nan() || zfar <= znear {
+        return Err(Error::input(
+            path,
+            "camera.zfar",
+            "must be greater than znear",
+        ));
+    }
     if !(position.is_finite() && look_at.is_finite() && up.is_finite())
         || (look_at - position).length() == 0.0
     {
@@ -634,20 +680,35 @@ fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
         look_at,
         up,
         yfov: yfov_deg.to_radians(),
+        clip: Clip {
+            near: znear,
+            far: zfar,
+        },
     }))
 }
 
-/// The output directory (`--out` wins) and the frames' file name stem.
+/// The output directory (`--out` wins), the frames' file name stem and the preview exposure
+/// (`--exposure` wins).
 fn output(
     path: &Path,
     base: &Path,
     file: Option<OutputFile>,
     overrides: &Overrides,
-) -> Result<(PathBuf, String)> {
+) -> Result<(PathBuf, String, f32)> {
     let out = file.unwrap_or(OutputFile {
         directory: None,
         name: None,
+        exposure: 0.0,
     });
+    let exposure = overrides.exposure.unwrap_or(out.exposure);
+    if !(-64.0..=64.0).contains(&exposure) {
+        let key = if overrides.exposure.is_some() {
+            "--exposure"
+        } else {
+            "output.exposure"
+        };
+        return Err(Error::input(path, key, "must be in [-64, 64] stops"));
+    }
     let out_dir = match &overrides.out_dir {
         Some(d) => d.clone(),
         None => base.join(out.directory.unwrap_or_else(|| PathBuf::from("render"))),
@@ -666,7 +727,7 @@ fn output(
             "must be a plain file name",
         ));
     }
-    Ok((out_dir, name))
+    Ok((out_dir, name, exposure))
 }
 
 /// A JSON error with the key path where serde stopped and the offending line (Tungsten-style).

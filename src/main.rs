@@ -44,6 +44,10 @@ enum Command {
         /// Also write a tone-mapped sRGB PNG per frame.
         #[arg(long)]
         preview: bool,
+        /// Preview exposure in stops, overriding the job's `output.exposure` (EXRs stay in
+        /// scene radiance).
+        #[arg(long, allow_hyphen_values = true)]
+        exposure: Option<f32>,
         /// No progress output.
         #[arg(long, short)]
         quiet: bool,
@@ -134,6 +138,7 @@ fn job_for_scene(path: &Path) -> Result<Job, Error> {
             path: PathBuf::from(path.file_name().unwrap_or_default()),
             transform: Default::default(),
             tags: Default::default(),
+            animations: None,
         }],
         camera: None,
         resolution: [640, 360],
@@ -158,6 +163,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             visibility,
             threads,
             preview,
+            exposure,
             quiet,
         } => {
             let overrides = Overrides {
@@ -165,6 +171,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 out_dir: out,
                 method: method.as_deref().map(parse_method).transpose()?,
                 visibility,
+                exposure,
             };
             set_threads(threads)?;
             let job = Job::load(&job, &overrides)?;
@@ -201,6 +208,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 out_dir: out,
                 method: None,
                 visibility,
+                exposure: None,
             };
             let job = Job::load(&job, &overrides)?;
             let flags = compare::plan::Flags {

@@ -68,10 +68,13 @@ pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
     ];
     let mut channels = channels;
     if let Some(ids) = &img.anchor_id {
-        channels.push(AnyChannel::new("anchor_id", FlatSamples::U32(ids.clone())));
+        channels.push(AnyChannel::new(
+            "anchor_id.V",
+            FlatSamples::U32(ids.clone()),
+        ));
     }
     if let Some(r) = &img.reshoot {
-        channels.push(ch("reshoot", r.clone()));
+        channels.push(ch("reshoot.V", r.clone()));
     }
     let layer = Layer::new(
         (img.width as usize, img.height as usize),
@@ -109,16 +112,45 @@ fn to_srgb8(v: f32) -> u8 {
     (s * 255.0).round() as u8
 }
 
-/// Writes an 8-bit sRGB preview of the beauty pass, composited over black.
-pub fn write_png(path: &Path, img: &FrameImage) -> Result<()> {
+/// How a preview's exposure fits the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PreviewExposure {
+    /// Fraction of pixels with a channel clipped at white.
+    pub clipped: f32,
+    /// The exposure (stops) that would put the 99th-percentile luminance at white.
+    pub suggested: f32,
+}
+
+/// Writes an 8-bit sRGB preview of the beauty pass scaled by 2^`exposure`, composited over
+/// black, and says how much of it clips.
+pub fn write_png(path: &Path, img: &FrameImage, exposure: f32) -> Result<PreviewExposure> {
+    let gain = exposure.exp2();
     let mut buf = image::RgbImage::new(img.width, img.height);
+    let mut clipped = 0usize;
     for (i, p) in buf.pixels_mut().enumerate() {
-        let b = img.beauty[i];
+        let b = img.beauty[i].map(|v| v * gain);
+        clipped += usize::from(b[..3].iter().any(|&v| v > 1.0));
         *p = image::Rgb([to_srgb8(b[0]), to_srgb8(b[1]), to_srgb8(b[2])]);
     }
+    let mut lum: Vec<f32> = img
+        .beauty
+        .iter()
+        .map(|b| crate::color::luminance(glam::Vec3::new(b[0], b[1], b[2])))
+        .filter(|l| l.is_finite() && *l > 0.0)
+        .collect();
+    let p99 = if lum.is_empty() {
+        1.0
+    } else {
+        let k = (lum.len() * 99 / 100).min(lum.len() - 1);
+        *lum.select_nth_unstable_by(k, f32::total_cmp).1
+    };
     write_atomic(path, |tmp| {
         buf.save_with_format(tmp, image::ImageFormat::Png)
             .map_err(|e| e.to_string())
+    })?;
+    Ok(PreviewExposure {
+        clipped: clipped as f32 / img.beauty.len().max(1) as f32,
+        suggested: -(p99.log2() * 2.0).round() / 2.0,
     })
 }
 

@@ -187,6 +187,9 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
     }
 }
 
+/// A preview with more than this fraction of its pixels clipped gets a warning (once).
+const CLIPPED_WARNING: f32 = 0.2;
+
 /// Renders every frame of the job and writes EXR, stats JSON and (optionally) PNG per frame.
 /// The output directory is checked before the first frame renders.
 pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
@@ -210,6 +213,7 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
     });
     let mut all = Vec::new();
     let mut state = FrameState::default();
+    let mut warned_clipping = false;
     for (i, &frame) in frames.iter().enumerate() {
         let t0 = Instant::now();
         let mut stats = new_stats(job, frame);
@@ -221,7 +225,23 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         let exr = job.frame_path(frame, "exr");
         output::write_exr(&exr, &img)?;
         if opts.preview {
-            output::write_png(&job.frame_path(frame, "png"), &img)?;
+            let fit = output::write_png(&job.frame_path(frame, "png"), &img, job.exposure)?;
+            if fit.clipped > CLIPPED_WARNING && !warned_clipping {
+                warned_clipping = true;
+                let msg = format!(
+                    "anchorage: warning: {:.0} % of frame {frame}'s preview clips at exposure \
+                     {:+}; --exposure {:+} puts its 99th-percentile luminance at white (the \
+                     EXRs are unaffected)",
+                    100.0 * fit.clipped,
+                    job.exposure,
+                    fit.suggested
+                );
+                match &bar {
+                    Some(b) => b.println(msg),
+                    None if opts.progress == Progress::Auto => eprintln!("{msg}"),
+                    None => {}
+                }
+            }
         }
         stats.timings_s.output = t_out.elapsed().as_secs_f64();
         stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;

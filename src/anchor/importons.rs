@@ -6,7 +6,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::geom::cosine_direction;
-use crate::interaction::trace;
+use crate::interaction::trace_camera;
 use crate::sampling::{Sampler, Stream};
 use crate::scene::FrameScene;
 
@@ -31,8 +31,7 @@ impl Importons {
             .into_par_iter()
             .filter_map(|i| {
                 let s = Sampler::new(seed, 0, Stream::Importons, i);
-                let (o, d) = frame.camera.ray(s.get(0, 0), s.get(0, 1));
-                let sp = trace(frame, o, d)?;
+                let sp = trace_camera(frame, s.get(0, 0), s.get(0, 1)).1?;
                 let d2 = cosine_direction(sp.ns, s.get(0, 2).min(0.999_999_9), s.get(0, 3));
                 let h2 = frame.accel.closest(
                     &frame.static_geometry,

@@ -25,7 +25,7 @@ use grid::{REACH, RecordGrid};
 pub use record::{HIT_DYNAMIC, Record, Stratum, finish_record};
 
 use crate::geom::Motion;
-use crate::interaction::{SurfacePoint, trace};
+use crate::interaction::{SurfacePoint, trace_camera};
 use crate::scene::{FrameCamera, FrameScene, Projection};
 
 /// Irradiance-cache settings ([`CacheParams::default`] = the `production` preset).
@@ -306,11 +306,12 @@ impl IrradianceCache {
             let needed: Vec<(u32, SurfacePoint)> = candidates
                 .par_iter()
                 .filter_map(|&(x, y)| {
-                    let (o, d) = frame.camera.ray(
+                    let sp = trace_camera(
+                        frame,
                         (x as f32 + 0.5) / width as f32,
                         (y as f32 + 0.5) / height as f32,
-                    );
-                    let sp = trace(frame, o, d)?;
+                    )
+                    .1?;
                     (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
                 })
                 .collect();

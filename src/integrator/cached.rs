@@ -15,7 +15,7 @@ use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCo
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
 use crate::geom::Motion;
-use crate::interaction::{Materials, SurfacePoint, trace};
+use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
@@ -89,7 +89,7 @@ pub fn render(
         ctx.materials,
         params.photons,
         ctx.seed,
-        params.max_bounces,
+        params.photon_bounces,
         params.max_photon_radius,
     );
     st.photon_tracing = t.elapsed().as_secs_f64();
@@ -277,13 +277,14 @@ impl Shade for CachedShading<'_> {
     /// The pixel centre's surface: interpolation for the pixel's samples on that surface
     /// happens there, which does not move with the per-frame sample jitter.
     fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
-        let (co, cd) = ctx.scene.camera.ray(
+        let (_, centre) = trace_camera(
+            ctx.scene,
             (x as f32 + 0.5) / ctx.width as f32,
             (y as f32 + 0.5) / ctx.height as f32,
         );
         CachedPixel {
             index: y * ctx.width + x,
-            centre: trace(ctx.scene, co, cd),
+            centre,
             last: None,
         }
     }

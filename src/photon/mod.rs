@@ -98,12 +98,16 @@ impl PhotonSamples {
     }
 }
 
-/// Centre and radius of a sphere bounding all geometry.
-pub fn bounding_sphere(frame: &FrameScene) -> (Vec3, f32) {
-    let mut lo = Vec3::splat(f32::MAX);
-    let mut hi = Vec3::splat(f32::MIN);
-    for g in [&*frame.static_geometry, &frame.dynamic_geometry] {
-        for t in &g.triangles {
+/// The disc directional lights emit photons over: the cross-section of the sphere around the
+/// static set ([`FrameScene::static_box`]), the same in every frame, so a prop driving off the
+/// set neither thins the photons landing on it nor changes their power. Dynamic geometry
+/// outside that sphere gets direct sunlight (shadow rays) but no sun photons. A scene with no
+/// static geometry uses the bounds of all of it.
+pub fn sun_sphere(frame: &FrameScene) -> (Vec3, f32) {
+    let (mut lo, mut hi) = frame.static_box();
+    if frame.static_geometry.is_empty() {
+        (lo, hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for t in &frame.dynamic_geometry.triangles {
             for v in [t.v0, t.v1, t.v2] {
                 lo = lo.min(v.into());
                 hi = hi.max(v.into());
@@ -130,7 +134,7 @@ impl PhotonMap {
         max_bounces: u32,
         max_radius: f32,
     ) -> PhotonMap {
-        let (centre, radius) = bounding_sphere(frame);
+        let (centre, radius) = sun_sphere(frame);
         // Emitted flux per light.
         let mut sources = Vec::new();
         let mut power = Vec::new();

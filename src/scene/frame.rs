@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use glam::{Mat3, Mat4, Vec2, Vec3};
 
-use super::{Light, LightKind, Material, Primitive, Projection};
+use super::{Clip, Light, LightKind, Material, Primitive, Projection};
 use crate::accel::{Accel, StaticBvh};
 use crate::color::luminance;
 use crate::geom::{Geometry, Motion, Triangle, TriangleShading};
@@ -149,12 +149,25 @@ pub struct FrameCamera {
     pub forward: Vec3,
     pub projection: Projection,
     pub aspect: f32,
+    /// Camera rays see surfaces between these depths along `forward` only.
+    pub clip: Clip,
+}
+
+/// A camera ray: it sees surfaces from `origin` (on the near plane) out to `tmax`.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraRay {
+    pub origin: Vec3,
+    pub dir: Vec3,
+    pub tmax: f32,
 }
 
 impl FrameCamera {
-    /// From a camera node's world matrix (scale removed: cameras look along −Z).
-    pub fn from_matrix(world: Mat4, projection: Projection, aspect: f32) -> Self {
-        let (_, rot, origin) = world.to_scale_rotation_translation();
+    /// From a camera node's world matrix (scale removed: cameras look along −Z). The clip
+    /// depths are in the node's units, so they scale with the node's world scale as the
+    /// scene does.
+    pub fn from_matrix(world: Mat4, projection: Projection, clip: Clip, aspect: f32) -> Self {
+        let (scale, rot, origin) = world.to_scale_rotation_translation();
+        let s = scale.abs().element_sum() / 3.0;
         FrameCamera {
             origin,
             right: rot * Vec3::X,
@@ -162,7 +175,16 @@ impl FrameCamera {
             forward: rot * -Vec3::Z,
             projection,
             aspect,
+            clip: Clip {
+                near: clip.near * s,
+                far: clip.far * s,
+            },
         }
+    }
+
+    /// The same camera with clip depths `clip`.
+    pub fn with_clip(self, clip: Clip) -> Self {
+        FrameCamera { clip, ..self }
     }
 
     pub fn look_at(position: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) -> Self {
@@ -175,15 +197,16 @@ impl FrameCamera {
             forward,
             projection: Projection::Perspective { yfov },
             aspect,
+            clip: Clip::default(),
         }
     }
 
-    /// Ray through film position `(x, y)` in `[0, 1]²`, y down. Returns origin and unit
-    /// direction.
-    pub fn ray(&self, x: f32, y: f32) -> (Vec3, Vec3) {
+    /// Ray through film position `(x, y)` in `[0, 1]²`, y down, from the near clip plane to
+    /// the far one (glTF 2.0 §3.10: `znear`, `zfar` are depths along the view axis).
+    pub fn ray(&self, x: f32, y: f32) -> CameraRay {
         let sx = 2.0 * x - 1.0;
         let sy = 1.0 - 2.0 * y;
-        match self.projection {
+        let (eye, dir) = match self.projection {
             Projection::Perspective { yfov } => {
                 let h = (0.5 * yfov).tan();
                 let d = self.forward + self.right * (sx * h * self.aspect) + self.up * (sy * h);
@@ -194,7 +217,24 @@ impl FrameCamera {
                     self.origin + self.right * (sx * ymag * self.aspect) + self.up * (sy * ymag);
                 (o, self.forward)
             }
+        };
+        // Distance along the ray per unit of depth.
+        let per_depth = 1.0 / dir.dot(self.forward).max(f32::MIN_POSITIVE);
+        let near = self.clip.near * per_depth;
+        CameraRay {
+            origin: eye + dir * near,
+            dir,
+            tmax: if self.clip.far.is_finite() {
+                (self.clip.far * per_depth - near).max(0.0)
+            } else {
+                f32::INFINITY
+            },
         }
+    }
+
+    /// Depth of `p` along the view axis (the `Z` AOV).
+    pub fn depth(&self, p: Vec3) -> f32 {
+        (p - self.origin).dot(self.forward)
     }
 }
 

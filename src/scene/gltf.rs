@@ -18,7 +18,8 @@ use gltf::mesh::util::{
 use super::anim::{Animation, Channel, Interpolation, Property, Sampler};
 use super::material::{Material, Texture, TextureRef, Wrap};
 use super::{
-    Camera, Layer, Light, LightKind, Mesh, MorphTarget, Motion, Node, Primitive, Projection, Skin,
+    Camera, Clip, Layer, Light, LightKind, Mesh, MorphTarget, Motion, Node, Primitive, Projection,
+    Skin,
 };
 use crate::color::srgb_to_linear;
 use crate::error::{Error, Result};
@@ -75,7 +76,7 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
     let (meshes, degenerate_triangles) = r.meshes()?;
     let skins = r.skins();
     let lights = r.lights()?;
-    let cameras = r.cameras();
+    let cameras = r.cameras()?;
     let (nodes, roots) = r.nodes()?;
     let animations = r.animations()?;
     Ok(Loaded {
@@ -492,20 +493,56 @@ impl<'a> Reader<'a> {
     }
 
     /// Reads `cameras` (glTF 2.0 §3.10): the projection's vertical field of view or
-    /// magnification; the renderer sets its own clip planes.
-    fn cameras(&self) -> Vec<Camera> {
+    /// magnification, and its clip depths. Values no camera can have are errors.
+    fn cameras(&self) -> Result<Vec<Camera>> {
         self.doc
             .cameras()
-            .map(|c| Camera {
-                name: c.name().unwrap_or("").to_owned(),
-                projection: match c.projection() {
+            .map(|c| {
+                let at = |key: &str| format!("{}.{key}", name_of("cameras", c.index(), c.name()));
+                let bad = |key: &str, msg: &str| Error::input(self.path, at(key), msg.to_string());
+                let (projection, clip) = match c.projection() {
                     gltf::camera::Projection::Perspective(p) => {
-                        Projection::Perspective { yfov: p.yfov() }
+                        let yfov = p.yfov();
+                        if !(yfov > 0.0 && yfov < std::f32::consts::PI) {
+                            return Err(bad("perspective.yfov", "must be in (0, π) radians"));
+                        }
+                        let near = p.znear();
+                        if !(near.is_finite() && near > 0.0) {
+                            return Err(bad("perspective.znear", "must be finite and > 0"));
+                        }
+                        let far = p.zfar().unwrap_or(f32::INFINITY);
+                        if far.is_nan() || far <= near {
+                            return Err(bad("perspective.zfar", "must be greater than znear"));
+                        }
+                        (Projection::Perspective { yfov }, Clip { near, far })
                     }
                     gltf::camera::Projection::Orthographic(o) => {
-                        Projection::Orthographic { ymag: o.ymag() }
+                        let ymag = o.ymag();
+                        if !(ymag.is_finite() && ymag != 0.0) {
+                            return Err(bad("orthographic.ymag", "must be finite and non-zero"));
+                        }
+                        let near = o.znear();
+                        if !(near.is_finite() && near >= 0.0) {
+                            return Err(bad("orthographic.znear", "must be finite and ≥ 0"));
+                        }
+                        let far = o.zfar();
+                        if !(far.is_finite() && far > near) {
+                            return Err(bad(
+                                "orthographic.zfar",
+                                "must be finite and greater than znear",
+                            ));
+                        }
+                        (
+                            Projection::Orthographic { ymag: ymag.abs() },
+                            Clip { near, far },
+                        )
                     }
-                },
+                };
+                Ok(Camera {
+                    name: c.name().unwrap_or("").to_owned(),
+                    projection,
+                    clip,
+                })
             })
             .collect()
     }

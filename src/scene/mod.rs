@@ -23,7 +23,7 @@ use glam::{Mat4, Quat, Vec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-pub use frame::{FrameCamera, FrameScene, PunctualLight, StaticSet};
+pub use frame::{CameraRay, FrameCamera, FrameScene, PunctualLight, StaticSet};
 pub use material::{Material, Texture};
 
 use crate::error::{Error, Result};
@@ -173,6 +173,25 @@ pub enum Projection {
 pub struct Camera {
     pub name: String,
     pub projection: Projection,
+    pub clip: Clip,
+}
+
+/// Clip depths along a camera's view axis: surfaces nearer than `near` or farther than `far`
+/// are not seen by camera rays (glTF's `znear`/`zfar`). Light still reaches them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Clip {
+    pub near: f32,
+    /// `f32::INFINITY` for no far plane.
+    pub far: f32,
+}
+
+impl Default for Clip {
+    fn default() -> Self {
+        Clip {
+            near: 0.0,
+            far: f32::INFINITY,
+        }
+    }
 }
 
 /// One glTF file placed in the scene.
@@ -218,6 +237,7 @@ pub struct LookAt {
     pub up: Vec3,
     /// Vertical field of view in radians.
     pub yfov: f32,
+    pub clip: Clip,
 }
 
 /// The camera a scene description asks for.
@@ -236,6 +256,8 @@ pub struct LayerDesc {
     pub transform: Mat4,
     /// Motion tags by node name; they win over tags in the file.
     pub tags: BTreeMap<String, Motion>,
+    /// The animation clips that play (names or `animations[i]`); `None`: all.
+    pub animations: Option<Vec<String>>,
 }
 
 /// What to load: the layers, the camera, and the file that describes them (errors about
@@ -281,6 +303,107 @@ impl Layer {
             .and_then(|i| i.parse::<usize>().ok())
             .filter(|&i| i < self.nodes.len() && accept(&self.nodes[i]))
             .ok_or_else(|| format!("no node named \"{name}\" in {}", self.path.display()))
+    }
+
+    /// Keeps the clips a job chooses (all when it chooses none) and warns where kept clips
+    /// drive the same property of a node, since only the first in the file can play there.
+    fn select_animations(
+        &mut self,
+        chosen: Option<&[String]>,
+        desc_file: &Path,
+        layer: usize,
+    ) -> Result<()> {
+        if let Some(chosen) = chosen {
+            let mut keep = vec![false; self.animations.len()];
+            for (j, name) in chosen.iter().enumerate() {
+                let at = || format!("scene[{layer}].animations[{j}]");
+                let named: Vec<usize> = (0..self.animations.len())
+                    .filter(|&i| self.animations[i].name == *name)
+                    .collect();
+                let i = match named[..] {
+                    [i] => i,
+                    [] => name
+                        .strip_prefix("animations[")
+                        .and_then(|r| r.strip_suffix(']'))
+                        .and_then(|i| i.parse::<usize>().ok())
+                        .filter(|&i| i < self.animations.len())
+                        .ok_or_else(|| {
+                            let all: Vec<&str> =
+                                self.animations.iter().map(|a| a.name.as_str()).collect();
+                            Error::input(
+                                desc_file,
+                                at(),
+                                format!(
+                                    "no animation named \"{name}\" in {} (it has: {})",
+                                    self.path.display(),
+                                    if all.is_empty() {
+                                        "none".to_string()
+                                    } else {
+                                        all.join(", ")
+                                    }
+                                ),
+                            )
+                        })?,
+                    _ => {
+                        return Err(Error::input(
+                            desc_file,
+                            at(),
+                            format!(
+                                "{} animations are named \"{name}\" in {}; name one as animations[i]",
+                                named.len(),
+                                self.path.display()
+                            ),
+                        ));
+                    }
+                };
+                keep[i] = true;
+            }
+            let mut i = 0;
+            self.animations.retain(|_| {
+                i += 1;
+                keep[i - 1]
+            });
+        }
+        let mut first: HashMap<(usize, u8), &str> = HashMap::new();
+        let mut fights: BTreeMap<(usize, u8), Vec<&str>> = BTreeMap::new();
+        for a in &self.animations {
+            for c in &a.channels {
+                let key = (c.node, c.property as u8);
+                match first.get(&key) {
+                    None => {
+                        first.insert(key, &a.name);
+                    }
+                    Some(&f) if f != a.name => {
+                        let v = fights.entry(key).or_insert_with(|| vec![f]);
+                        if !v.contains(&a.name.as_str()) {
+                            v.push(&a.name);
+                        }
+                    }
+                    Some(_) => {}
+                }
+            }
+        }
+        let mut warnings = Vec::new();
+        for ((node, prop), clips) in &fights {
+            let prop = ["translation", "rotation", "scale", "weights"][*prop as usize];
+            let node = match self.nodes[*node].name.as_str() {
+                "" => format!("nodes[{node}]"),
+                name => format!("nodes[{node}] \"{name}\""),
+            };
+            warnings.push(format!(
+                "{}: animations {} all drive the {prop} of {node}; only \"{}\" (first in the \
+                 file) plays there: choose clips with scene[{layer}].animations",
+                self.path.display(),
+                clips
+                    .iter()
+                    .map(|c| format!("\"{c}\""))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                clips[0],
+            ));
+        }
+        self.warnings.extend(warnings);
+        Ok(())
     }
 
     /// For each node, the first animation that moves it (its own channels or an ancestor's,
@@ -493,6 +616,7 @@ impl Scene {
             )?;
             let mut layer = loaded.layer;
             layer.transform = l.transform;
+            layer.select_animations(l.animations.as_deref(), desc.file, li)?;
             layer.resolve_tags(&l.tags, desc.file, li)?;
             materials.extend(loaded.materials);
             textures.extend(loaded.textures);
@@ -593,10 +717,10 @@ impl Scene {
                 let l = &self.layers[*layer];
                 let world = l.world_matrices(t)[*node];
                 let cam = &l.cameras[l.nodes[*node].camera.expect("camera node")];
-                FrameCamera::from_matrix(world, cam.projection, aspect)
+                FrameCamera::from_matrix(world, cam.projection, cam.clip, aspect)
             }
             CameraChoice::LookAt(l) => {
-                FrameCamera::look_at(l.position, l.look_at, l.up, l.yfov, aspect)
+                FrameCamera::look_at(l.position, l.look_at, l.up, l.yfov, aspect).with_clip(l.clip)
             }
         }
     }

@@ -306,7 +306,7 @@ fn kept_anchor_estimates_match_fresh_ones() {
         m,
         params.photons,
         job.seed,
-        params.max_bounces,
+        params.photon_bounces,
         params.max_photon_radius,
     );
     let set = state.anchors.as_ref().unwrap();

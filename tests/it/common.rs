@@ -282,6 +282,28 @@ pub fn python() -> Option<PathBuf> {
     None
 }
 
+/// Blender (`$ANCHORAGE_BLENDER` or `blender` on the PATH; `.ci/run` installs Debian's), or
+/// `None` with the reason printed. In CI (`CI` set) a missing Blender fails the test instead.
+pub fn blender() -> Option<PathBuf> {
+    let p = std::env::var_os("ANCHORAGE_BLENDER")
+        .map(PathBuf::from)
+        .or_else(|| {
+            std::env::var_os("PATH").and_then(|path| {
+                std::env::split_paths(&path)
+                    .map(|d| d.join("blender"))
+                    .find(|p| p.is_file())
+            })
+        });
+    if let Some(p) = p.filter(|p| p.is_file()) {
+        return Some(p);
+    }
+    if std::env::var_os("CI").is_some() {
+        panic!("blender is missing: .ci/run must install it");
+    }
+    eprintln!("skipped: blender not found (.ci/run installs Debian's)");
+    None
+}
+
 /// Minimal glTF reader for checks independent of the `gltf` crate: the JSON and the
 /// float data of an accessor (tightly packed f32 accessors only).
 pub struct RawGltf {

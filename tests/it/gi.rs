@@ -117,6 +117,41 @@ fn furnace_indirect_matches_closed_form() {
     }
 }
 
+/// Bounce caps: in a bright furnace (ρ = 0.9) the light of bounce n falls as 0.9ⁿ, so a cap
+/// of 12 drops 0.9¹² ≈ 28 % of it. The default caps (64) keep the closed form; the job's
+/// `path_depth` and `photon_bounces` reach the tracers.
+#[test]
+fn default_bounce_caps_hold_a_bright_furnace() {
+    let dir = tempdir();
+    let (rho, le) = (0.9f32, 1.0f32);
+    let want = (rho * rho * le / (1.0 - rho)) as f64;
+    for (method, extra, tol) in [
+        ("brute-force", r#","preset":"draft","photons":100000"#, 0.05),
+        ("path-trace", r#","preset":"draft","path_samples":64"#, 0.05),
+    ] {
+        let job = furnace(dir.path(), rho, le, 1.0, method, extra);
+        let img = render(&job, 0);
+        let ind = mean(&img, |i| img.indirect[i][1]);
+        eprintln!("{method}: indirect {ind:.4} (closed form {want:.4})");
+        assert!(
+            (ind - want).abs() / want < tol,
+            "{method}: indirect {ind} vs {want}"
+        );
+        let capped = match method {
+            "path-trace" => format!(r#"{extra},"path_depth":12"#),
+            _ => format!(r#"{extra},"photon_bounces":12"#),
+        };
+        let job = furnace(dir.path(), rho, le, 1.0, method, &capped);
+        let img = render(&job, 0);
+        let low = mean(&img, |i| img.indirect[i][1]);
+        eprintln!("{method} capped at 12: indirect {low:.4}");
+        assert!(
+            low < 0.85 * want,
+            "{method}: the cap of 12 is not applied ({low} vs {want})"
+        );
+    }
+}
+
 /// The anchor method keeps the furnace's answer after its first frame too, when the
 /// strata read their anchors' re-estimated L_i instead of gathering.
 #[test]

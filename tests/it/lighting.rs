@@ -65,11 +65,11 @@ fn check_against(
     let mut worst = 0.0f32;
     for y in 0..img.height {
         for x in 0..img.width {
-            let (o, d) = cam.ray(
+            let r = cam.ray(
                 (x as f32 + 0.5) / img.width as f32,
                 (y as f32 + 0.5) / img.height as f32,
             );
-            let p = o + d * (-o.y / d.y);
+            let p = r.origin + r.dir * (-r.origin.y / r.dir.y);
             let want = expect(p);
             let got = img.beauty[(y * img.width + x) as usize][0];
             let err = (got - want).abs() / want;

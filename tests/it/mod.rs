@@ -1,6 +1,7 @@
 mod anchors;
 mod cli;
 pub mod common;
+mod controls;
 mod gi;
 mod gpu;
 mod layout;

@@ -147,3 +147,135 @@ fn light_sealed_in_a_closed_box_does_not_leak_into_the_room() {
         assert!(secs < 10.0, "{method}: {secs:.1} s for a 48×36 frame");
     }
 }
+
+/// A glTF of one mesh (`pos`, `idx`) named `name`, white-ish and double-sided, with `light`
+/// (a `KHR_lights_punctual` light JSON, or none) on a node rotated by `light_rotation`.
+fn mesh_gltf(name: &str, pos: &[f32], idx: &[u32], light: Option<(&str, [f32; 4])>) -> String {
+    let mut bin: Vec<u8> = pos.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let plen = bin.len();
+    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
+    let (ext, lights, light_node, nodes) = match light {
+        Some((l, rot)) => (
+            r#""extensionsUsed":["KHR_lights_punctual"],"#.to_string(),
+            format!(r#""extensions":{{"KHR_lights_punctual":{{"lights":[{l}]}}}},"#),
+            format!(
+                r#",{{"name":"sun","rotation":{rot:?},"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}}"#
+            ),
+            "[0,1]",
+        ),
+        None => (String::new(), String::new(), String::new(), "[0]"),
+    };
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},{ext}{lights}
+        "scenes":[{{"nodes":{nodes}}}],
+        "nodes":[{{"name":"{name}","mesh":0}}{light_node}],
+        "materials":[{{"doubleSided":true,"pbrMetallicRoughness":{{"baseColorFactor":[0.7,0.7,0.7,1],"metallicFactor":0}}}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":{:?},"max":{:?}}},
+                     {{"bufferView":0,"byteOffset":{plen},"componentType":5125,"count":{},"type":"SCALAR"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":{}}}],
+        "buffers":[{{"byteLength":{},"uri":"data:application/octet-stream;base64,{}"}}]}}"#,
+        pos.len() / 3,
+        [0, 1, 2].map(|k| pos
+            .iter()
+            .skip(k)
+            .step_by(3)
+            .copied()
+            .fold(f32::MAX, f32::min)),
+        [0, 1, 2].map(|k| pos
+            .iter()
+            .skip(k)
+            .step_by(3)
+            .copied()
+            .fold(f32::MIN, f32::max)),
+        idx.len(),
+        bin.len(),
+        bin.len(),
+        super::scenes::base64_encode(&bin)
+    )
+}
+
+/// The set for the sun test: a 10 × 10 ground and a wall, lit by a directional light from
+/// above at an angle; `prop` adds a dynamic cube 200 units away (a car that drove off).
+fn sun_job(dir: &std::path::Path, prop: bool) -> (anchorage::job::Job, String) {
+    let (mut pos, mut idx) = (Vec::new(), Vec::new());
+    pos.extend([
+        -5.0, 0.0, -5.0, -5.0, 0.0, 5.0, 5.0, 0.0, 5.0, 5.0, 0.0, -5.0,
+    ]);
+    pos.extend([
+        -5.0, 0.0, -5.0, 5.0, 0.0, -5.0, 5.0, 4.0, -5.0, -5.0, 4.0, -5.0,
+    ]);
+    idx.extend([0, 1, 2, 0, 2, 3, 4, 5, 6, 4, 6, 7]);
+    // About X by −81°: the light's −Z points down and 9° towards the wall (−Z).
+    let half = -81f32.to_radians() / 2.0;
+    let rot = [half.sin(), 0.0, 0.0, half.cos()];
+    std::fs::write(
+        dir.join("set.gltf"),
+        mesh_gltf(
+            "set",
+            &pos,
+            &idx,
+            Some((r#"{"type":"directional","intensity":3}"#, rot)),
+        ),
+    )
+    .unwrap();
+    let (mut cpos, mut cidx) = (Vec::new(), Vec::new());
+    cube(&mut cpos, &mut cidx, [0.0, 1.0, 0.0], 1.0);
+    std::fs::write(dir.join("prop.gltf"), mesh_gltf("prop", &cpos, &cidx, None)).unwrap();
+    let prop_layer = if prop {
+        r#",{"path":"prop.gltf","transform":{"translation":[200,0,0]},"tags":{"prop":"dynamic"}}"#
+    } else {
+        ""
+    };
+    let name = if prop { "with-prop" } else { "set-only" };
+    let job = job_from_json(
+        &dir.join(format!("{name}.json")),
+        &format!(
+            r#"{{"scene":[{{"path":"set.gltf"}}{prop_layer}],"camera":{{"position":[0,3,8],"look_at":[0,1,-4],"yfov_deg":60}},
+            "resolution":[40,30],"render":{{"samples_per_pixel":2}},"method":{{"name":"brute-force","preset":"draft","photons":20000}}}}"#
+        ),
+    )
+    .unwrap();
+    (job, name.to_string())
+}
+
+/// Directional lights emit over the static set, not over all geometry: a prop 200 units
+/// off the set leaves the photons landing on it and the set's indirect light unchanged.
+/// With the disc sized by all geometry, the photons stored fell from ~20 000 to ~200.
+#[test]
+fn a_prop_driving_off_the_set_leaves_the_sun_photons_on_it_unchanged() {
+    let dir = tempdir();
+    let mut seen = Vec::new();
+    for prop in [false, true] {
+        let (job, name) = sun_job(dir.path(), prop);
+        let scene = job.load_scene().unwrap();
+        let resources = anchorage::pipeline::new_resources(&job, &scene).unwrap();
+        let mut stats = anchorage::pipeline::new_stats(&job, 0);
+        let img = anchorage::pipeline::render_frame(
+            &job,
+            &scene,
+            &resources,
+            &mut Default::default(),
+            0,
+            &mut stats,
+        )
+        .unwrap();
+        let m = mean_indirect(&img);
+        eprintln!(
+            "{name}: {} photons stored, mean indirect {m:.4}",
+            stats.counts.photons
+        );
+        seen.push((stats.counts.photons as f64, m));
+    }
+    let (p0, m0) = seen[0];
+    let (p1, m1) = seen[1];
+    assert!(p0 > 5000.0, "the set catches the sun's photons: {p0}");
+    assert!(
+        (p1 - p0).abs() / p0 < 0.01,
+        "photons on the set: {p0} alone, {p1} with the prop away"
+    );
+    assert!(
+        (m1 - m0).abs() / m0 < 0.02,
+        "indirect: {m0:.4} alone, {m1:.4} with the prop away"
+    );
+}

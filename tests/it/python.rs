@@ -48,14 +48,14 @@ fn exr_channels_and_values_read_back_with_openexr() {
             "G",
             "R",
             "Z",
-            "anchor_id",
+            "anchor_id.V",
             "direct.B",
             "direct.G",
             "direct.R",
             "indirect.B",
             "indirect.G",
             "indirect.R",
-            "reshoot"
+            "reshoot.V"
         ]
     );
     // Values equal an in-memory render of the same frame, bit for bit.
@@ -83,14 +83,66 @@ fn exr_channels_and_values_read_back_with_openexr() {
     }
     assert!(r.iter().any(|&x| x > 0.0));
     // anchor_id is a 32-bit unsigned channel: exact integers, as many anchors as there are.
-    assert_eq!(v["channels"]["anchor_id"]["type"], "uint32");
-    let ids = ch("anchor_id");
+    assert_eq!(v["channels"]["anchor_id.V"]["type"], "uint32");
+    let ids = ch("anchor_id.V");
     let mine = img.anchor_id.as_ref().unwrap();
     for i in 0..ids.len() {
         assert_eq!(ids[i] as u32, mine[i], "anchor_id at {i}");
     }
     assert!(mine.iter().any(|&id| id > 0));
-    assert_eq!(ch("reshoot"), *img.reshoot.as_ref().unwrap());
+    assert_eq!(ch("reshoot.V"), *img.reshoot.as_ref().unwrap());
+}
+
+/// Blender's compositor lists every AOV as a layer (a bare channel name such as
+/// `anchor_id` is dropped there; `anchor_id.V` shows).
+#[test]
+fn blender_compositor_lists_every_aov() {
+    let Some(blender) = blender() else { return };
+    let dir = tempdir();
+    let out = run(&[
+        "render",
+        example_job().to_str().unwrap(),
+        "--frames",
+        "3",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let o = Command::new(blender)
+        .args(["-b", "--factory-startup", "--python"])
+        .arg(root().join("tests/blender/list_layers.py"))
+        .arg("--")
+        .arg(dir.path().join("room.0003.exr"))
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    let line = text
+        .lines()
+        .find_map(|l| l.strip_prefix("ANCHORAGE:"))
+        .unwrap_or_else(|| panic!("no result from Blender: {text}{}", stderr(&o)));
+    let v: serde_json::Value = serde_json::from_str(line).unwrap();
+    assert_eq!(v["type"], "MULTILAYER");
+    let mut outputs: Vec<&str> = v["outputs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o.as_str().unwrap())
+        .collect();
+    outputs.sort();
+    assert_eq!(
+        outputs,
+        [
+            "Alpha",
+            "Combined",
+            "Depth",
+            "anchor_id",
+            "direct",
+            "indirect",
+            "reshoot"
+        ]
+    );
 }
 
 #[test]
