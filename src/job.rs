@@ -434,8 +434,7 @@ pub struct Job {
 impl Job {
     /// Reads, validates and applies `overrides` to the job file at `path`.
     pub fn load(path: &Path, overrides: &Overrides) -> Result<Job> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| Error::input(path, "file", format!("cannot read job file: {e}")))?;
+        let text = read_job_text(path)?;
         let file: JobFile = serde_json::from_str(&text).map_err(|e| json_error(path, &text, &e))?;
         Job::from_file(path, file, overrides)
     }
@@ -477,6 +476,14 @@ impl Job {
                 path,
                 "frames",
                 format!("end {} is before start {}", frames.end, frames.start),
+            ));
+        }
+        let count = i64::from(frames.end) - i64::from(frames.start) + 1;
+        if count > MAX_FRAMES {
+            return Err(Error::input(
+                path,
+                "frames",
+                format!("{count} frames in one job; at most {MAX_FRAMES} (split the shot)"),
             ));
         }
         let render = render_settings(path, file.render, overrides)?;
@@ -687,6 +694,41 @@ fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
     }))
 }
 
+/// Most frames one job renders (about 70 minutes at 24 fps): shots beyond it are split.
+pub const MAX_FRAMES: i64 = 100_000;
+
+/// Largest job file read: job files are small; this stops `/dev/zero` or a wrong path to a
+/// huge file from being read into memory.
+const MAX_JOB_BYTES: u64 = 16 << 20;
+
+/// Longest `output.name`, in bytes: the temporary names add about 30 to it, and file names
+/// are limited to 255 bytes.
+const MAX_NAME_BYTES: usize = 200;
+
+/// The job file's text: a regular file of at most [`MAX_JOB_BYTES`].
+fn read_job_text(path: &Path) -> Result<String> {
+    use std::io::Read;
+    let fail = |m: String| Error::input(path, "file", m);
+    let f = std::fs::File::open(path).map_err(|e| fail(format!("cannot read job file: {e}")))?;
+    let meta = f
+        .metadata()
+        .map_err(|e| fail(format!("cannot read job file: {e}")))?;
+    if !meta.is_file() {
+        return Err(fail("is not a regular file".into()));
+    }
+    let mut text = String::new();
+    f.take(MAX_JOB_BYTES + 1)
+        .read_to_string(&mut text)
+        .map_err(|e| fail(format!("cannot read job file: {e}")))?;
+    if text.len() as u64 > MAX_JOB_BYTES {
+        return Err(fail(format!(
+            "larger than {} MiB: not a job file",
+            MAX_JOB_BYTES >> 20
+        )));
+    }
+    Ok(text)
+}
+
 /// The output directory (`--out` wins), the frames' file name stem and the preview exposure
 /// (`--exposure` wins).
 fn output(
@@ -720,11 +762,23 @@ fn output(
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "frame".into()),
     };
-    if name.is_empty() || name.contains(['/', '\\']) {
+    if name.is_empty()
+        || name == "."
+        || name == ".."
+        || name.contains(['/', '\\'])
+        || name.chars().any(char::is_control)
+    {
         return Err(Error::input(
             path,
             "output.name",
-            "must be a plain file name",
+            "must be a plain file name (no path separators or control characters)",
+        ));
+    }
+    if name.len() > MAX_NAME_BYTES {
+        return Err(Error::input(
+            path,
+            "output.name",
+            format!("{} bytes long; at most {MAX_NAME_BYTES}", name.len()),
         ));
     }
     Ok((out_dir, name, exposure))

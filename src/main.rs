@@ -48,6 +48,10 @@ enum Command {
         /// scene radiance).
         #[arg(long, allow_hyphen_values = true)]
         exposure: Option<f32>,
+        /// Most memory the render may use, e.g. 8G or 512M (default: 80 % of the machine's).
+        /// A job estimated to need more stops before rendering, with exit code 2.
+        #[arg(long)]
+        memory_limit: Option<String>,
         /// No progress output.
         #[arg(long, short)]
         quiet: bool,
@@ -111,10 +115,21 @@ fn parse_frames(s: &str) -> Result<FrameRange, Error> {
     Ok(FrameRange { start, end })
 }
 
+/// Most worker threads `--threads` may ask for: far more than any machine's cores, far fewer
+/// than would exhaust its memory for stacks.
+const MAX_THREADS: usize = 1024;
+
 fn set_threads(threads: Option<usize>) -> Result<(), Error> {
     if let Some(n) = threads {
+        if n == 0 || n > MAX_THREADS {
+            return Err(Error::input(
+                "--threads",
+                n.to_string(),
+                format!("must be 1..={MAX_THREADS}"),
+            ));
+        }
         rayon::ThreadPoolBuilder::new()
-            .num_threads(n.max(1))
+            .num_threads(n)
             .build_global()
             .map_err(|e| Error::Render(e.to_string()))?;
     }
@@ -164,6 +179,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             threads,
             preview,
             exposure,
+            memory_limit,
             quiet,
         } => {
             let overrides = Overrides {
@@ -174,11 +190,16 @@ fn run(cli: Cli) -> Result<(), Error> {
                 exposure,
             };
             set_threads(threads)?;
+            let limit = memory_limit
+                .as_deref()
+                .map(anchorage::budget::Limit::parse)
+                .transpose()?;
             let job = Job::load(&job, &overrides)?;
             let scene = job.load_scene()?;
             for w in scene.warnings() {
                 eprintln!("anchorage: warning: {w}");
             }
+            anchorage::budget::check(&job, &scene, limit)?;
             let opts = RenderOptions {
                 preview,
                 progress: if quiet {
@@ -220,6 +241,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             };
             let plan = compare::Plan::new(&flags, &job)?;
             let scene = job.load_scene()?;
+            anchorage::budget::check(&job, &scene, None)?;
             anchorage::output::check_output_dir(&job.out_dir)?;
             let report = compare::run(&job, &scene, &plan)?;
             print!("{}", compare::table(&report));
@@ -251,6 +273,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             for w in scene.warnings() {
                 eprintln!("anchorage: warning: {w}");
             }
+            anchorage::budget::check(&job, &scene, None)?;
             anchorage::output::check_output_dir(&job.out_dir)?;
             println!(
                 "{}: ok: {} layer(s), frames {}..{}, {}x{}",
@@ -266,8 +289,55 @@ fn run(cli: Cli) -> Result<(), Error> {
     }
 }
 
+/// Names the input in the message a panic would print, and exits 1: a panic is a bug in
+/// anchorage, never a crash the user has to decode.
+fn install_panic_hook() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    std::panic::set_hook(Box::new(move |info| {
+        let at = info
+            .location()
+            .map(|l| format!(" at {}:{}", l.file(), l.line()))
+            .unwrap_or_default();
+        let what = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_default();
+        eprintln!(
+            "anchorage: internal error{at}: {what}\n  while running: anchorage {}\n  please \
+             report it with the input files",
+            args.join(" ")
+        );
+        std::process::exit(1);
+    }));
+}
+
+/// The Vulkan probe loads the Wayland client library, which prints `error: XDG_RUNTIME_DIR is
+/// invalid or not set` to stderr on machines without a session (render farms). anchorage
+/// never opens a window: with no `WAYLAND_DISPLAY`, point it at a path that cannot exist,
+/// which Wayland then fails to open without a word.
+fn quiet_wayland() {
+    let runtime_ok =
+        std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|d| Path::new(&d).is_absolute());
+    if std::env::var_os("WAYLAND_DISPLAY").is_none() && !runtime_ok {
+        // SAFETY: called first in `main`, before any other thread exists.
+        unsafe { std::env::set_var("WAYLAND_DISPLAY", "/dev/null/anchorage-has-no-display") };
+    }
+}
+
 fn main() -> ExitCode {
+    quiet_wayland();
+    install_panic_hook();
     let cli = Cli::parse();
+    if matches!(
+        cli.command,
+        Command::Render { .. } | Command::Compare { .. }
+    ) && let Err(e) = anchorage::output::install_signal_cleanup()
+    {
+        eprintln!("anchorage: error: {e}");
+        return ExitCode::from(e.exit_code() as u8);
+    }
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

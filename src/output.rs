@@ -1,9 +1,18 @@
 //! Frame output: one single-part OpenEXR per frame with `layer.channel` names (the layout
 //! Nuke and Blender both read as layers), a stats JSON beside it (`schemas/stats.schema.json`)
-//! and an optional PNG preview. Every file is written to a temporary name in the same
-//! directory and renamed into place, so a failed or interrupted frame leaves no partial file.
+//! and an optional PNG preview.
+//!
+//! Every file is first written to a temporary file created exclusively (never following a
+//! symlink) under an unpredictable name in the output directory ([`tempfile`]), then renamed
+//! into place. A frame's files are renamed together ([`commit`]), the EXR last, and removed
+//! again if any rename fails: a frame is its EXR and its stats, or nothing. Temporary files
+//! not yet renamed are listed so that SIGINT/SIGTERM can remove them before exiting
+//! ([`install_signal_cleanup`]).
 
+use std::fs::File;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use exr::prelude::*;
 use serde::Serialize;
@@ -11,25 +20,128 @@ use serde::Serialize;
 use crate::error::{Error, Result};
 use crate::integrator::FrameImage;
 
-/// Writes a file through `write` to a temporary name beside `path`, then renames it.
-pub fn write_atomic(
+/// Temporary files of this process that are not renamed into place yet.
+static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn pending() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    PENDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A file written under a temporary name beside `path`, waiting to be renamed to it.
+/// Dropped without [`commit`], the temporary file is removed.
+pub struct Staged {
+    tmp: Option<tempfile::TempPath>,
+    path: PathBuf,
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if let Some(tmp) = self.tmp.take() {
+            let p = tmp.to_path_buf();
+            drop(tmp);
+            pending().retain(|q| *q != p);
+        }
+    }
+}
+
+fn write_error(path: &Path, e: impl std::fmt::Display) -> Error {
+    Error::Render(format!("cannot write {}: {e}", path.display()))
+}
+
+/// A new temporary file in `dir`, created exclusively, listed for removal on signals.
+fn create_temp(dir: &Path, prefix: &str) -> std::io::Result<tempfile::NamedTempFile> {
+    // Held while creating, so that a signal cannot fall between creation and listing.
+    let mut list = pending();
+    let mut b = tempfile::Builder::new();
+    b.prefix(prefix).suffix(".tmp");
+    // Outputs are read by others (compositors, farm users): the usual 0666 less the umask,
+    // not the private 0600 of a temporary file.
+    #[cfg(unix)]
+    b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let f = b.tempfile_in(dir)?;
+    list.push(f.path().to_path_buf());
+    Ok(f)
+}
+
+/// Writes a file through `write` to a new temporary file beside `path`.
+pub fn stage(
     path: &Path,
-    write: impl FnOnce(&Path) -> std::result::Result<(), String>,
-) -> Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
+    write: impl FnOnce(&mut BufWriter<&mut File>) -> std::result::Result<(), String>,
+) -> Result<Staged> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let tmp: PathBuf = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| e.to_string()));
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::Render(format!(
-            "cannot write {}: {e}",
-            path.display()
-        )));
+    let file = create_temp(dir, &format!(".{name}.")).map_err(|e| write_error(path, e))?;
+    let (mut f, tmp) = file.into_parts();
+    let staged = Staged {
+        tmp: Some(tmp),
+        path: path.to_path_buf(),
+    };
+    let mut w = BufWriter::new(&mut f);
+    write(&mut w)
+        .and_then(|()| w.flush().map_err(|e| e.to_string()))
+        .map_err(|e| write_error(path, e))?;
+    drop(w);
+    f.sync_all().map_err(|e| write_error(path, e))?;
+    Ok(staged)
+}
+
+/// Renames staged files into place in order; if one fails, those already renamed are
+/// removed again, so the set appears whole or not at all.
+pub fn commit(files: Vec<Staged>) -> Result<()> {
+    let mut done: Vec<PathBuf> = Vec::new();
+    for mut f in files {
+        let Some(tmp) = f.tmp.take() else { continue };
+        let tmp_path = tmp.to_path_buf();
+        match tmp.persist(&f.path) {
+            Ok(()) => {
+                pending().retain(|q| *q != tmp_path);
+                done.push(f.path.clone());
+            }
+            Err(e) => {
+                drop(e.path);
+                pending().retain(|q| *q != tmp_path);
+                for d in &done {
+                    let _ = std::fs::remove_file(d);
+                }
+                return Err(write_error(&f.path, e.error));
+            }
+        }
     }
+    Ok(())
+}
+
+/// Writes one file: staged, then renamed into place.
+pub fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<&mut File>) -> std::result::Result<(), String>,
+) -> Result<()> {
+    commit(vec![stage(path, write)?])
+}
+
+/// On SIGINT or SIGTERM, removes this process's temporary files and exits with 130 or 143
+/// (128 + the signal), as shells report a process the signal ended.
+pub fn install_signal_cleanup() -> Result<()> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM])
+        .map_err(|e| Error::Render(format!("cannot install signal handlers: {e}")))?;
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            if let Some(sig) = signals.forever().next() {
+                for p in pending().drain(..) {
+                    let _ = std::fs::remove_file(p);
+                }
+                eprintln!("anchorage: interrupted (signal {sig}); temporary files removed");
+                std::process::exit(128 + sig);
+            }
+        })
+        .map_err(|e| Error::Render(format!("cannot start the signal thread: {e}")))?;
     Ok(())
 }
 
@@ -41,15 +153,16 @@ pub fn check_output_dir(dir: &Path) -> Result<()> {
     };
     std::fs::create_dir_all(dir)
         .map_err(|e| fail(format!("cannot create output directory: {e}")))?;
-    let probe = dir.join(format!(".anchorage-probe-{}", std::process::id()));
-    std::fs::write(&probe, b"")
+    let probe = create_temp(dir, ".anchorage-probe.")
         .map_err(|e| fail(format!("output directory is not writable: {e}")))?;
-    let _ = std::fs::remove_file(&probe);
+    let p = probe.path().to_path_buf();
+    drop(probe);
+    pending().retain(|q| *q != p);
     Ok(())
 }
 
-/// Writes the frame's AOVs as a ZIP-compressed, single-part, scanline EXR of 32-bit floats.
-pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
+/// Stages the frame's AOVs as a ZIP-compressed, single-part, scanline EXR of 32-bit floats.
+pub fn stage_exr(path: &Path, img: &FrameImage) -> Result<Staged> {
     let n = (img.width * img.height) as usize;
     let plane = |f: &dyn Fn(usize) -> f32| -> Vec<f32> { (0..n).map(f).collect() };
     let ch = |name: &str, v: Vec<f32>| AnyChannel::new(name, FlatSamples::F32(v));
@@ -88,11 +201,11 @@ pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
     );
     let image = Image::from_layer(layer);
     // Single-threaded compression keeps the byte stream independent of scheduling.
-    write_atomic(path, |tmp| {
+    stage(path, |w| {
         image
             .write()
             .non_parallel()
-            .to_file(tmp)
+            .to_buffered(w)
             .map_err(|e| e.to_string())
     })
 }
@@ -121,9 +234,13 @@ pub struct PreviewExposure {
     pub suggested: f32,
 }
 
-/// Writes an 8-bit sRGB preview of the beauty pass scaled by 2^`exposure`, composited over
+/// Stages an 8-bit sRGB preview of the beauty pass scaled by 2^`exposure`, composited over
 /// black, and says how much of it clips.
-pub fn write_png(path: &Path, img: &FrameImage, exposure: f32) -> Result<PreviewExposure> {
+pub fn stage_png(
+    path: &Path,
+    img: &FrameImage,
+    exposure: f32,
+) -> Result<(Staged, PreviewExposure)> {
     let gain = exposure.exp2();
     let mut buf = image::RgbImage::new(img.width, img.height);
     let mut clipped = 0usize;
@@ -144,20 +261,30 @@ pub fn write_png(path: &Path, img: &FrameImage, exposure: f32) -> Result<Preview
         let k = (lum.len() * 99 / 100).min(lum.len() - 1);
         *lum.select_nth_unstable_by(k, f32::total_cmp).1
     };
-    write_atomic(path, |tmp| {
-        buf.save_with_format(tmp, image::ImageFormat::Png)
+    let staged = stage(path, |w| {
+        buf.write_to(w, image::ImageFormat::Png)
             .map_err(|e| e.to_string())
     })?;
-    Ok(PreviewExposure {
-        clipped: clipped as f32 / img.beauty.len().max(1) as f32,
-        suggested: -(p99.log2() * 2.0).round() / 2.0,
+    Ok((
+        staged,
+        PreviewExposure {
+            clipped: clipped as f32 / img.beauty.len().max(1) as f32,
+            suggested: -(p99.log2() * 2.0).round() / 2.0,
+        },
+    ))
+}
+
+/// Stages any serialisable value as pretty JSON.
+pub fn stage_json<T: Serialize>(path: &Path, value: &T) -> Result<Staged> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| Error::Render(e.to_string()))?;
+    stage(path, |w| {
+        w.write_all(text.as_bytes())
+            .and_then(|()| w.write_all(b"\n"))
+            .map_err(|e| e.to_string())
     })
 }
 
 /// Writes any serialisable value as pretty JSON.
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| Error::Render(e.to_string()))?;
-    write_atomic(path, |tmp| {
-        std::fs::write(tmp, text + "\n").map_err(|e| e.to_string())
-    })
+    commit(vec![stage_json(path, value)?])
 }

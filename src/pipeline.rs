@@ -223,9 +223,11 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         let img = render_frame(job, scene, &resources, &mut state, frame, &mut stats)?;
         let t_out = Instant::now();
         let exr = job.frame_path(frame, "exr");
-        output::write_exr(&exr, &img)?;
+        let staged_exr = output::stage_exr(&exr, &img)?;
+        let mut files = Vec::new();
         if opts.preview {
-            let fit = output::write_png(&job.frame_path(frame, "png"), &img, job.exposure)?;
+            let (png, fit) = output::stage_png(&job.frame_path(frame, "png"), &img, job.exposure)?;
+            files.push(png);
             if fit.clipped > CLIPPED_WARNING && !warned_clipping {
                 warned_clipping = true;
                 let msg = format!(
@@ -245,7 +247,13 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         }
         stats.timings_s.output = t_out.elapsed().as_secs_f64();
         stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;
-        output::write_json(&job.frame_path(frame, "json"), &stats)?;
+        // The stats first and the EXR last: an EXR under its final name means a whole frame.
+        files.insert(
+            0,
+            output::stage_json(&job.frame_path(frame, "json"), &stats)?,
+        );
+        files.push(staged_exr);
+        output::commit(files)?;
         match &bar {
             Some(b) => {
                 b.set_message(format!("frame {frame}: {:.2} s", stats.timings_s.total));

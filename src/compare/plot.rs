@@ -50,13 +50,13 @@ pub(super) fn write(dir: &Path, r: &Report) -> Result<[PathBuf; 2]> {
         .map_err(|_| Error::Render("the embedded plot font does not parse".into()))?;
     let (png, svg) = (dir.join("compare.png"), dir.join("compare.svg"));
     let img = raster(r)?;
-    output::write_atomic(&png, |tmp| {
-        img.save_with_format(tmp, image::ImageFormat::Png)
+    output::write_atomic(&png, |w| {
+        img.write_to(w, image::ImageFormat::Png)
             .map_err(|e| e.to_string())
     })?;
     let text = vector(r)?;
-    output::write_atomic(&svg, |tmp| {
-        std::fs::write(tmp, &text).map_err(|e| e.to_string())
+    output::write_atomic(&svg, |w| {
+        std::io::Write::write_all(w, text.as_bytes()).map_err(|e| e.to_string())
     })?;
     Ok([png, svg])
 }

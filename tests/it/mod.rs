@@ -4,6 +4,7 @@ pub mod common;
 mod controls;
 mod gi;
 mod gpu;
+mod hardening;
 mod layout;
 mod lighting;
 mod photons;

@@ -1,0 +1,231 @@
+//! Hostile and unlucky conditions: signals mid-render, planted symlinks, a full disk, limits
+//! on memory, threads, frames, names and file sizes. Whatever happens, no file outside the
+//! outputs changes, a frame is its EXR and its stats or nothing, and the exit code says why.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use super::common::*;
+
+/// Files in `dir` by name.
+fn names(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .map(|r| {
+            r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+/// Every EXR has its stats and nothing else is left: no temporary file, no lone stats.
+fn assert_whole_frames(dir: &Path) {
+    let all = names(dir);
+    for n in &all {
+        assert!(!n.starts_with('.'), "temporary file left: {n} in {all:?}");
+        if let Some(stem) = n.strip_suffix(".exr") {
+            assert!(
+                all.contains(&format!("{stem}.json")),
+                "{n} without stats: {all:?}"
+            );
+        }
+    }
+}
+
+/// A child render killed with SIGTERM (or SIGINT) at different moments removes its temporary
+/// files and exits 143 (130); the frames it finished are whole.
+#[test]
+fn interrupted_renders_leave_whole_frames_and_no_temporary_files() {
+    let dir = tempdir();
+    let job = example_job();
+    let mut finished = 0;
+    for (i, delay_ms) in [300u64, 900, 1500, 2500, 4000, 6000]
+        .into_iter()
+        .enumerate()
+    {
+        let out = dir.path().join(format!("out{i}"));
+        let sig = if i % 2 == 0 { "TERM" } else { "INT" };
+        let mut child = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+            .args([
+                "render",
+                job.to_str().unwrap(),
+                "--frames",
+                "0-3",
+                "--preview",
+                "--quiet",
+            ])
+            .arg("--out")
+            .arg(&out)
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        let _ = Command::new("kill")
+            .args([&format!("-{sig}"), &child.id().to_string()])
+            .status();
+        let t = Instant::now();
+        let status = child.wait().unwrap();
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the render ignored SIG{sig}"
+        );
+        let code = status.code();
+        if code == Some(0) {
+            finished += 1;
+        } else {
+            let want = if sig == "TERM" { 143 } else { 130 };
+            assert_eq!(code, Some(want), "SIG{sig} after {delay_ms} ms");
+        }
+        assert_whole_frames(&out);
+    }
+    assert!(finished < 6, "every render finished before its signal");
+}
+
+/// Symlinks planted in a shared output directory, at the final names and at the temporary
+/// names older versions used, redirect nothing: the files they point to are unchanged and
+/// the outputs are regular files of this render (reproducer S1).
+#[cfg(unix)]
+#[test]
+fn planted_symlinks_redirect_no_writes() {
+    let dir = tempdir();
+    let out = dir.path().join("shared");
+    std::fs::create_dir(&out).unwrap();
+    let victim = dir.path().join("victim.txt");
+    std::fs::write(&victim, "precious\n").unwrap();
+    let pid_guess = std::process::id();
+    let mut planted = vec!["room.0000.exr".to_string(), "room.0000.json".to_string()];
+    for pid in pid_guess..pid_guess + 200 {
+        planted.push(format!(".anchorage-probe-{pid}"));
+        planted.push(format!(".room.0000.exr.tmp-{pid}"));
+        planted.push(format!(".room.0000.json.tmp-{pid}"));
+    }
+    for n in &planted {
+        std::os::unix::fs::symlink(&victim, out.join(n)).unwrap();
+    }
+    let o = run(&[
+        "render",
+        example_job().to_str().unwrap(),
+        "--frames",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious\n");
+    for n in ["room.0000.exr", "room.0000.json"] {
+        let meta = std::fs::symlink_metadata(out.join(n)).unwrap();
+        assert!(
+            meta.is_file(),
+            "{n} is a regular file, not the planted link"
+        );
+    }
+}
+
+/// A disk that fills up mid-frame: the render fails with exit 1 and leaves no EXR without
+/// its stats and no temporary file. Needs a small tmpfs, so root (CI); skipped otherwise.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_full_disk_leaves_no_partial_frame() {
+    let dir = tempdir();
+    let mnt = dir.path().join("small");
+    std::fs::create_dir(&mnt).unwrap();
+    // The example's EXR is about 2 MB: 1 MB holds its stats but not its image.
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=1m", "tmpfs"])
+        .arg(&mnt)
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("skipped: cannot mount a tmpfs (needs root)");
+        return;
+    }
+    let o = run(&[
+        "render",
+        example_job().to_str().unwrap(),
+        "--frames",
+        "0",
+        "--out",
+        mnt.to_str().unwrap(),
+        "--quiet",
+    ]);
+    let left = names(&mnt);
+    let _ = Command::new("umount").arg(&mnt).status();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("room.0000"), "{}", stderr(&o));
+    assert!(left.is_empty(), "left on the full disk: {left:?}");
+}
+
+/// Limits that stop a job before it starts, with exit 2 and the reason: memory over the
+/// limit, a frame range beyond reason, an absurd thread count, names that cannot be files,
+/// something that is not a job file.
+#[test]
+fn limits_refuse_jobs_before_they_start() {
+    let dir = tempdir();
+    let room = root().join("examples/room/room.gltf");
+    // `name` is the JSON of `output.name`, or empty.
+    let job_named = |name: &str, extra: &str| {
+        let p = dir.path().join("job.json");
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"scene":[{{"path":"{}"}}],"output":{{"directory":"out"{name}}}{extra}}}"#,
+                room.display()
+            ),
+        )
+        .unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    let job = |extra: &str| job_named("", extra);
+    let refused = |args: &[&str], needle: &str| {
+        let o = run(args);
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+        assert!(e.contains(needle), "{args:?}: {e}");
+        assert!(!dir.path().join("out").exists(), "{args:?} wrote output");
+    };
+    let j = job("");
+    refused(&["render", &j, "--memory-limit", "1M"], "--memory-limit");
+    refused(&["render", &j, "--memory-limit", "lots"], "--memory-limit");
+    refused(&["render", &j, "--threads", "1000000"], "--threads");
+    refused(
+        &["validate", &job(r#","resolution":[16384,16384]"#)],
+        "the render needs about",
+    );
+    let full = format!(r#","frames":{{"start":{},"end":{}}}"#, i32::MIN, i32::MAX);
+    refused(&["validate", &job(&full)], "frames");
+    let long = format!(r#","name":"{}""#, "n".repeat(300));
+    refused(&["validate", &job_named(&long, "")], "output.name");
+    refused(
+        &["validate", &job_named(r#","name":"a\u0000b""#, "")],
+        "output.name",
+    );
+    refused(&["validate", "/dev/zero"], "not a regular file");
+}
+
+/// The Vulkan probe says nothing on machines without a desktop session beyond anchorage's
+/// own line (render farms scrape logs for `error:`).
+#[test]
+fn the_gpu_probe_prints_no_error_lines() {
+    let dir = tempdir();
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args([
+            "render",
+            example_job().to_str().unwrap(),
+            "--frames",
+            "0",
+            "--quiet",
+        ])
+        .arg("--out")
+        .arg(dir.path())
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(!e.contains("error"), "{e}");
+}
