@@ -111,6 +111,14 @@ impl ShearedRay {
     /// Distance to `tri` along the ray within `(0, tmax]`, or infinity.
     #[inline]
     pub fn intersect(&self, tri: &Triangle, tmax: f32) -> f32 {
+        self.intersect_barycentric(tri, tmax).0
+    }
+
+    /// [`ShearedRay::intersect`] with the hit's barycentrics (weights of `v1` and `v2`), which
+    /// the alpha test of masked triangles needs.
+    #[inline]
+    pub fn intersect_barycentric(&self, tri: &Triangle, tmax: f32) -> (f32, Vec2) {
+        const MISS: (f32, Vec2) = (f32::INFINITY, Vec2::ZERO);
         let [kx, ky, kz] = self.k;
         let s = self.shear;
         let tr = |v: Vec3A| {
@@ -132,20 +140,33 @@ impl ShearedRay {
             e2 = f(p0, p1);
         }
         if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
-            return f32::INFINITY;
+            return MISS;
         }
         let det = e0 + e1 + e2;
         if det == 0.0 {
-            return f32::INFINITY;
+            return MISS;
         }
         let t_scaled = e0 * p0.2 + e1 * p1.2 + e2 * p2.2;
         if det < 0.0 && (t_scaled >= 0.0 || t_scaled < tmax * det) {
-            return f32::INFINITY;
+            return MISS;
         }
         if det > 0.0 && (t_scaled <= 0.0 || t_scaled > tmax * det) {
-            return f32::INFINITY;
+            return MISS;
         }
-        t_scaled / det
+        let inv = 1.0 / det;
+        (t_scaled * inv, Vec2::new(e1 * inv, e2 * inv))
+    }
+}
+
+/// The closure the traversals call for candidate triangle `i` of `g`: its distance, or
+/// infinity when the ray misses it or passes through a cut-out (glTF alpha `MASK`) part of it.
+#[inline]
+fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
+    let (t, b) = sr.intersect_barycentric(&g.triangles[i], tmax);
+    if t.is_finite() && !g.alpha_passes(i, b) {
+        f32::INFINITY
+    } else {
+        t
     }
 }
 
@@ -207,7 +228,7 @@ impl Accel {
         if let Some(bvh) = &self.statics.bvh {
             let mut hit = RayHit::none();
             if bvh.ray_traverse(ray, &mut hit, |r, id| {
-                sr.intersect(&s.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, s, bvh.primitive_indices[id] as usize, r.tmax)
             }) {
                 best = Some(Hit {
                     t: hit.t,
@@ -221,7 +242,7 @@ impl Accel {
             let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
             let mut hit = RayHit::none();
             if bvh.ray_traverse(ray, &mut hit, |r, id| {
-                sr.intersect(&d.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, d, bvh.primitive_indices[id] as usize, r.tmax)
             }) {
                 best = Some(Hit {
                     t: hit.t,
@@ -240,14 +261,14 @@ impl Accel {
         let sr = ShearedRay::new(origin, dir);
         if let Some(bvh) = &self.dynamic
             && !bvh.ray_traverse_miss(ray, |r, id| {
-                sr.intersect(&d.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, d, bvh.primitive_indices[id] as usize, r.tmax)
             })
         {
             return true;
         }
         if let Some(bvh) = &self.statics.bvh
             && !bvh.ray_traverse_miss(ray, |r, id| {
-                sr.intersect(&s.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, s, bvh.primitive_indices[id] as usize, r.tmax)
             })
         {
             return true;
@@ -296,9 +317,12 @@ mod tests {
                     uvs: [Vec2::ZERO; 3],
                     material: 0,
                     prim: 0,
+                    masked: false,
+                    attributes: crate::geom::NO_ATTRIBUTES,
                 };
                 tris.len()
             ],
+            ..Geometry::default()
         }
     }
 

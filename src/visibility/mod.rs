@@ -569,6 +569,8 @@ pub(crate) mod testing {
                     uvs: [Vec2::ZERO; 3],
                     material: 0,
                     prim: p,
+                    masked: false,
+                    attributes: crate::geom::NO_ATTRIBUTES,
                 });
             }
         }

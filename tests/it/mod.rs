@@ -5,6 +5,7 @@ mod gi;
 mod gpu;
 mod layout;
 mod lighting;
+mod materials;
 mod photons;
 mod python;
 mod scenes;
