@@ -111,14 +111,28 @@ impl ShearedRay {
     /// Distance to `tri` along the ray within `(0, tmax]`, or infinity.
     #[inline]
     pub fn intersect(&self, tri: &Triangle, tmax: f32) -> f32 {
-        self.intersect_barycentric(tri, tmax).0
+        match self.intersect_scaled(tri, tmax) {
+            Some((t_scaled, det, _)) => t_scaled / det,
+            None => f32::INFINITY,
+        }
     }
 
     /// [`ShearedRay::intersect`] with the hit's barycentrics (weights of `v1` and `v2`), which
     /// the alpha test of masked triangles needs.
     #[inline]
     pub fn intersect_barycentric(&self, tri: &Triangle, tmax: f32) -> (f32, Vec2) {
-        const MISS: (f32, Vec2) = (f32::INFINITY, Vec2::ZERO);
+        match self.intersect_scaled(tri, tmax) {
+            Some((t_scaled, det, e)) => (t_scaled / det, e / det),
+            None => (f32::INFINITY, Vec2::ZERO),
+        }
+    }
+
+    /// The watertight test proper: for a hit within `(0, tmax]`, the distance times the
+    /// determinant, the determinant, and the edge functions of `v1` and `v2` (barycentrics
+    /// times the determinant). The division is left to the caller.
+    #[inline]
+    fn intersect_scaled(&self, tri: &Triangle, tmax: f32) -> Option<(f32, f32, Vec2)> {
+        const MISS: Option<(f32, f32, Vec2)> = None;
         let [kx, ky, kz] = self.k;
         let s = self.shear;
         let tr = |v: Vec3A| {
@@ -153,8 +167,7 @@ impl ShearedRay {
         if det > 0.0 && (t_scaled <= 0.0 || t_scaled > tmax * det) {
             return MISS;
         }
-        let inv = 1.0 / det;
-        (t_scaled * inv, Vec2::new(e1 * inv, e2 * inv))
+        Some((t_scaled, det, Vec2::new(e1, e2)))
     }
 }
 
@@ -162,11 +175,17 @@ impl ShearedRay {
 /// infinity when the ray misses it or passes through a cut-out (glTF alpha `MASK`) part of it.
 #[inline]
 fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
-    let (t, b) = sr.intersect_barycentric(&g.triangles[i], tmax);
-    if t.is_finite() && !g.alpha_passes(i, b) {
-        f32::INFINITY
-    } else {
-        t
+    match sr.intersect_scaled(&g.triangles[i], tmax) {
+        None => f32::INFINITY,
+        // Opaque triangles: one flag read, no barycentrics.
+        Some((t_scaled, det, _)) if !g.shading[i].masked => t_scaled / det,
+        Some((t_scaled, det, e)) => {
+            if g.alpha_passes(i, e / det) {
+                t_scaled / det
+            } else {
+                f32::INFINITY
+            }
+        }
     }
 }
 
@@ -401,6 +420,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// An alpha test that cuts out the half of every triangle nearer its second vertex.
+    #[derive(Debug)]
+    struct HalfCut;
+
+    impl crate::geom::AlphaTest for HalfCut {
+        fn opaque(&self, _: &Geometry, _: usize, b: Vec2) -> bool {
+            b.x < 0.5
+        }
+    }
+
+    /// Masked triangles let rays through where their alpha test fails, in both sets and for
+    /// both closest-hit and shadow rays; the same triangle unmasked stops them.
+    #[test]
+    fn masked_triangles_are_cut_out_for_every_query() {
+        let t = triangle(
+            Vec3::new(0.0, 0.0, -2.0),
+            Vec3::new(4.0, 0.0, -2.0),
+            Vec3::new(0.0, 4.0, -2.0),
+        );
+        let mut masked = geometry(&[t]);
+        masked.shading[0].masked = true;
+        masked.alpha = Some(Arc::new(HalfCut));
+        let opaque = Geometry {
+            alpha: Some(Arc::new(HalfCut)),
+            ..geometry(&[t])
+        };
+        let e = Geometry::default();
+        // (3, 0.5) has b.x = 0.75: cut out; (0.5, 0.5) has b.x = 0.125: opaque.
+        let (cut, kept) = (Vec3::new(3.0, 0.5, 0.0), Vec3::new(0.5, 0.5, 0.0));
+        for (s, d) in [(&masked, &e), (&e, &masked)] {
+            let a = Accel::build(s, d);
+            assert!(a.closest(s, d, cut, -Vec3::Z, f32::INFINITY).is_none());
+            assert!(!a.occluded(s, d, cut, -Vec3::Z, 10.0));
+            assert!(a.closest(s, d, kept, -Vec3::Z, f32::INFINITY).is_some());
+            assert!(a.occluded(s, d, kept, -Vec3::Z, 10.0));
+        }
+        let a = Accel::build(&opaque, &e);
+        assert!(
+            a.closest(&opaque, &e, cut, -Vec3::Z, f32::INFINITY)
+                .is_some()
+        );
+        assert!(a.occluded(&opaque, &e, cut, -Vec3::Z, 10.0));
     }
 
     #[test]

@@ -285,6 +285,26 @@ mod tests {
         assert_eq!(Wrap::MirroredRepeat.apply(8, 4), 0);
     }
 
+    /// `KHR_texture_transform` is T · R · S with R turning (1, 0) towards (0, −1) — the
+    /// direction the Khronos TextureTransformTest model checks (as three.js and
+    /// cesium-native apply it) — scale first, offset last.
+    #[test]
+    fn texture_transform_scales_then_rotates_then_offsets() {
+        let t = UvTransform::new(
+            Vec2::new(0.5, 0.25),
+            std::f32::consts::FRAC_PI_2,
+            Vec2::new(2.0, 3.0),
+        );
+        let p = t.apply(Vec2::new(1.0, 0.0));
+        assert!((p - Vec2::new(0.5, -1.75)).length() < 1e-6, "{p}");
+        let p = t.apply(Vec2::new(0.0, 1.0));
+        assert!((p - Vec2::new(3.5, 0.25)).length() < 1e-6, "{p}");
+        assert_eq!(
+            UvTransform::IDENTITY.apply(Vec2::new(0.3, 0.7)),
+            Vec2::new(0.3, 0.7)
+        );
+    }
+
     #[test]
     fn bilinear_sample_of_a_checker_centre_averages() {
         let t = Texture {
