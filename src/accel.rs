@@ -179,13 +179,8 @@ fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
         None => f32::INFINITY,
         // Opaque triangles: one flag read, no barycentrics.
         Some((t_scaled, det, _)) if !g.shading[i].masked => t_scaled / det,
-        Some((t_scaled, det, e)) => {
-            if g.alpha_passes(i, e / det) {
-                t_scaled / det
-            } else {
-                f32::INFINITY
-            }
-        }
+        Some((t_scaled, det, e)) if g.alpha_passes(i, e / det) => t_scaled / det,
+        Some(_) => f32::INFINITY,
     }
 }
 
