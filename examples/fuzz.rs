@@ -24,7 +24,7 @@ impl Rng {
     pub fn new(seed: u64) -> Rng {
         Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xD1B5_4A32_D192_ED03)
     }
-    pub fn next(&mut self) -> u64 {
+    pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -32,7 +32,7 @@ impl Rng {
         z ^ (z >> 31)
     }
     pub fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
+        (self.next_u64() % n.max(1) as u64) as usize
     }
 }
 
@@ -138,7 +138,7 @@ fn mutate_json(b: &[u8], rng: &mut Rng) -> Vec<u8> {
         if 20 + len <= b.len() {
             let json = mutate_json(&b[20..20 + len], rng);
             let mut pad = json;
-            while pad.len() % 4 != 0 {
+            while !pad.len().is_multiple_of(4) {
                 pad.push(b' ');
             }
             let mut out = b[..12].to_vec();

@@ -111,6 +111,28 @@ impl ShearedRay {
     /// Distance to `tri` along the ray within `(0, tmax]`, or infinity.
     #[inline]
     pub fn intersect(&self, tri: &Triangle, tmax: f32) -> f32 {
+        match self.intersect_scaled(tri, tmax) {
+            Some((t_scaled, det, _)) => t_scaled / det,
+            None => f32::INFINITY,
+        }
+    }
+
+    /// [`ShearedRay::intersect`] with the hit's barycentrics (weights of `v1` and `v2`), which
+    /// the alpha test of masked triangles needs.
+    #[inline]
+    pub fn intersect_barycentric(&self, tri: &Triangle, tmax: f32) -> (f32, Vec2) {
+        match self.intersect_scaled(tri, tmax) {
+            Some((t_scaled, det, e)) => (t_scaled / det, e / det),
+            None => (f32::INFINITY, Vec2::ZERO),
+        }
+    }
+
+    /// The watertight test proper: for a hit within `(0, tmax]`, the distance times the
+    /// determinant, the determinant, and the edge functions of `v1` and `v2` (barycentrics
+    /// times the determinant). The division is left to the caller.
+    #[inline]
+    fn intersect_scaled(&self, tri: &Triangle, tmax: f32) -> Option<(f32, f32, Vec2)> {
+        const MISS: Option<(f32, f32, Vec2)> = None;
         let [kx, ky, kz] = self.k;
         let s = self.shear;
         let tr = |v: Vec3A| {
@@ -132,20 +154,33 @@ impl ShearedRay {
             e2 = f(p0, p1);
         }
         if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
-            return f32::INFINITY;
+            return MISS;
         }
         let det = e0 + e1 + e2;
         if det == 0.0 {
-            return f32::INFINITY;
+            return MISS;
         }
         let t_scaled = e0 * p0.2 + e1 * p1.2 + e2 * p2.2;
         if det < 0.0 && (t_scaled >= 0.0 || t_scaled < tmax * det) {
-            return f32::INFINITY;
+            return MISS;
         }
         if det > 0.0 && (t_scaled <= 0.0 || t_scaled > tmax * det) {
-            return f32::INFINITY;
+            return MISS;
         }
-        t_scaled / det
+        Some((t_scaled, det, Vec2::new(e1, e2)))
+    }
+}
+
+/// The closure the traversals call for candidate triangle `i` of `g`: its distance, or
+/// infinity when the ray misses it or passes through a cut-out (glTF alpha `MASK`) part of it.
+#[inline]
+fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
+    match sr.intersect_scaled(&g.triangles[i], tmax) {
+        None => f32::INFINITY,
+        // Opaque triangles: one flag read, no barycentrics.
+        Some((t_scaled, det, _)) if !g.shading[i].masked => t_scaled / det,
+        Some((t_scaled, det, e)) if g.alpha_passes(i, e / det) => t_scaled / det,
+        Some(_) => f32::INFINITY,
     }
 }
 
@@ -207,7 +242,7 @@ impl Accel {
         if let Some(bvh) = &self.statics.bvh {
             let mut hit = RayHit::none();
             if bvh.ray_traverse(ray, &mut hit, |r, id| {
-                sr.intersect(&s.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, s, bvh.primitive_indices[id] as usize, r.tmax)
             }) {
                 best = Some(Hit {
                     t: hit.t,
@@ -221,7 +256,7 @@ impl Accel {
             let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
             let mut hit = RayHit::none();
             if bvh.ray_traverse(ray, &mut hit, |r, id| {
-                sr.intersect(&d.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, d, bvh.primitive_indices[id] as usize, r.tmax)
             }) {
                 best = Some(Hit {
                     t: hit.t,
@@ -240,14 +275,14 @@ impl Accel {
         let sr = ShearedRay::new(origin, dir);
         if let Some(bvh) = &self.dynamic
             && !bvh.ray_traverse_miss(ray, |r, id| {
-                sr.intersect(&d.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, d, bvh.primitive_indices[id] as usize, r.tmax)
             })
         {
             return true;
         }
         if let Some(bvh) = &self.statics.bvh
             && !bvh.ray_traverse_miss(ray, |r, id| {
-                sr.intersect(&s.triangles[bvh.primitive_indices[id] as usize], r.tmax)
+                hit_distance(&sr, s, bvh.primitive_indices[id] as usize, r.tmax)
             })
         {
             return true;
@@ -296,9 +331,12 @@ mod tests {
                     uvs: [Vec2::ZERO; 3],
                     material: 0,
                     prim: 0,
+                    masked: false,
+                    attributes: crate::geom::NO_ATTRIBUTES,
                 };
                 tris.len()
             ],
+            ..Geometry::default()
         }
     }
 
@@ -377,6 +415,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// An alpha test that cuts out the half of every triangle nearer its second vertex.
+    #[derive(Debug)]
+    struct HalfCut;
+
+    impl crate::geom::AlphaTest for HalfCut {
+        fn opaque(&self, _: &Geometry, _: usize, b: Vec2) -> bool {
+            b.x < 0.5
+        }
+    }
+
+    /// Masked triangles let rays through where their alpha test fails, in both sets and for
+    /// both closest-hit and shadow rays; the same triangle unmasked stops them.
+    #[test]
+    fn masked_triangles_are_cut_out_for_every_query() {
+        let t = triangle(
+            Vec3::new(0.0, 0.0, -2.0),
+            Vec3::new(4.0, 0.0, -2.0),
+            Vec3::new(0.0, 4.0, -2.0),
+        );
+        let mut masked = geometry(&[t]);
+        masked.shading[0].masked = true;
+        masked.alpha = Some(Arc::new(HalfCut));
+        let opaque = Geometry {
+            alpha: Some(Arc::new(HalfCut)),
+            ..geometry(&[t])
+        };
+        let e = Geometry::default();
+        // (3, 0.5) has b.x = 0.75: cut out; (0.5, 0.5) has b.x = 0.125: opaque.
+        let (cut, kept) = (Vec3::new(3.0, 0.5, 0.0), Vec3::new(0.5, 0.5, 0.0));
+        for (s, d) in [(&masked, &e), (&e, &masked)] {
+            let a = Accel::build(s, d);
+            assert!(a.closest(s, d, cut, -Vec3::Z, f32::INFINITY).is_none());
+            assert!(!a.occluded(s, d, cut, -Vec3::Z, 10.0));
+            assert!(a.closest(s, d, kept, -Vec3::Z, f32::INFINITY).is_some());
+            assert!(a.occluded(s, d, kept, -Vec3::Z, 10.0));
+        }
+        let a = Accel::build(&opaque, &e);
+        assert!(
+            a.closest(&opaque, &e, cut, -Vec3::Z, f32::INFINITY)
+                .is_some()
+        );
+        assert!(a.occluded(&opaque, &e, cut, -Vec3::Z, 10.0));
     }
 
     #[test]

@@ -4,7 +4,9 @@
 
 use std::f32::consts::PI;
 
-use glam::{Vec2, Vec3, Vec3A};
+use std::sync::Arc;
+
+use glam::{Vec2, Vec3, Vec3A, Vec4};
 use serde::{Deserialize, Serialize};
 
 pub use obvhs::triangle::Triangle;
@@ -26,6 +28,34 @@ pub struct TriangleShading {
     pub material: u32,
     /// Global prim (node) index: layers' nodes numbered one after another.
     pub prim: u32,
+    /// The material cuts the surface out where its alpha is below a cutoff (glTF `alphaMode`
+    /// `MASK`, and `BLEND` rendered as a cut-out): only hits on such triangles pay for the
+    /// alpha test ([`Geometry::alpha_passes`]).
+    pub masked: bool,
+    /// Index into [`Geometry::attributes`], or [`NO_ATTRIBUTES`] for triangles whose mesh has
+    /// neither vertex colours nor tangents.
+    pub attributes: u32,
+}
+
+/// [`TriangleShading::attributes`] of a triangle without vertex colours or tangents.
+pub const NO_ATTRIBUTES: u32 = u32::MAX;
+
+/// Per-vertex data only some meshes carry, kept apart so that the common triangle stays small.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TriangleAttributes {
+    /// Linear RGBA vertex colours (`COLOR_0`; white where the mesh has none).
+    pub colors: [Vec4; 3],
+    /// World-space tangents with the bitangent's sign in `w` (`TANGENT`); zero where the mesh
+    /// has none, and tangents are then derived from the texture coordinates.
+    pub tangents: [Vec4; 3],
+}
+
+/// Decides whether a hit on a masked triangle counts (glTF alpha cut-out). Implemented by
+/// the scene's materials; geometry without one treats every triangle as opaque.
+pub trait AlphaTest: Send + Sync + std::fmt::Debug {
+    /// True where triangle `triangle` of `g` is opaque at barycentrics `b` (weights of its
+    /// second and third vertices).
+    fn opaque(&self, g: &Geometry, triangle: usize, b: Vec2) -> bool;
 }
 
 /// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
@@ -33,6 +63,10 @@ pub struct TriangleShading {
 pub struct Geometry {
     pub triangles: Vec<Triangle>,
     pub shading: Vec<TriangleShading>,
+    /// Vertex colours and tangents of the triangles that have them.
+    pub attributes: Vec<TriangleAttributes>,
+    /// The alpha test of masked triangles; `None` makes every triangle opaque.
+    pub alpha: Option<Arc<dyn AlphaTest>>,
 }
 
 impl Geometry {
@@ -46,6 +80,25 @@ impl Geometry {
 
     pub fn bytes(&self) -> usize {
         self.triangles.len() * (size_of::<Triangle>() + size_of::<TriangleShading>())
+            + self.attributes.len() * size_of::<TriangleAttributes>()
+    }
+
+    /// Whether a ray hitting triangle `i` at barycentrics `b` stops there: always for opaque
+    /// triangles (one flag read), else the alpha test.
+    #[inline]
+    pub fn alpha_passes(&self, i: usize, b: Vec2) -> bool {
+        if !self.shading[i].masked {
+            return true;
+        }
+        match &self.alpha {
+            Some(a) => a.opaque(self, i, b),
+            None => true,
+        }
+    }
+
+    /// Triangle `i`'s vertex colours and tangents, if it has them.
+    pub fn attributes_of(&self, i: usize) -> Option<&TriangleAttributes> {
+        self.attributes.get(self.shading[i].attributes as usize)
     }
 }
 

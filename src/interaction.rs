@@ -6,10 +6,13 @@
 //! spot lights, lux for directional lights, nits for emission), so a point light of
 //! intensity `I` over a white Lambertian plane gives `I·cosθ/(π r²)`.
 
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec4};
 
 use crate::accel::{Hit, barycentric, offset_of};
+use crate::geom::Geometry;
 use crate::sampling::Sampler;
+use crate::scene::frame::uniform_barycentric;
+use crate::scene::material::NormalMap;
 use crate::scene::{FrameScene, LightKind, Material, PunctualLight, Texture};
 
 /// What the renderer needs of the scene's materials.
@@ -23,11 +26,15 @@ pub struct Materials<'a> {
 #[derive(Debug, Clone, Copy)]
 pub struct SurfacePoint {
     pub position: Vec3,
-    /// Geometric normal on the side the ray came from.
+    /// Geometric normal on the side the ray came from: ray offsets and side tests use it.
     pub ng: Vec3,
-    /// Interpolated shading normal, on the same side as `ng`.
+    /// Shading normal — interpolated vertex normal, perturbed by the material's normal map —
+    /// on the same side as `ng`: cosines and sampled directions use it.
     pub ns: Vec3,
+    /// `TEXCOORD_0` at the hit.
     pub uv: Vec2,
+    /// Linear RGBA vertex colour (`COLOR_0`) at the hit; white without one.
+    pub color: Vec4,
     /// Distance to move ray origins off this surface.
     pub offset: f32,
     pub material: u32,
@@ -47,15 +54,36 @@ impl SurfacePoint {
         let n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
         let front = n.dot(dir) < 0.0;
         let ng = if front { n } else { -n };
-        let ns =
+        let nv =
             (sh.normals[0] * w + sh.normals[1] * b.x + sh.normals[2] * b.y).normalize_or_zero();
-        let ns = if ns.dot(ng) < 0.0 { -ns } else { ns };
-        let ns = if ns == Vec3::ZERO { ng } else { ns };
+        let nv = if nv == Vec3::ZERO { n } else { nv };
+        let uv = sh.uvs[0] * w + sh.uvs[1] * b.x + sh.uvs[2] * b.y;
+        let (_, color) = crate::scene::Surfaces::uv_and_color(g, hit.triangle as usize, b);
+        let surfaces = &frame.surfaces;
+        let mapped = surfaces
+            .materials
+            .get(sh.material as usize)
+            .and_then(|m| m.normal_texture)
+            .and_then(|map| normal_mapped(g, hit.triangle as usize, nv, uv, b, &map, surfaces));
+        // Oriented like `ng`; a mapped normal on the far side of the geometric one falls back
+        // to the interpolated normal.
+        let orient = |v: Vec3| if v.dot(ng) < 0.0 { -v } else { v };
+        let ns = match mapped {
+            Some(m) if (if front { m } else { -m }).dot(ng) > 0.0 => {
+                if front {
+                    m
+                } else {
+                    -m
+                }
+            }
+            _ => orient(nv),
+        };
         SurfacePoint {
             position,
             ng,
             ns,
-            uv: sh.uvs[0] * w + sh.uvs[1] * b.x + sh.uvs[2] * b.y,
+            uv,
+            color,
             offset: offset_of(tri),
             material: sh.material,
             front,
@@ -68,19 +96,76 @@ impl SurfacePoint {
         self.position + self.ng * self.offset
     }
 
+    /// Lambertian albedo: base colour factor × texture × vertex colour.
     pub fn albedo(&self, m: Materials) -> Vec3 {
-        m.materials[self.material as usize].albedo(self.uv, m.textures)
+        m.materials[self.material as usize].albedo(self.uv, self.color, m.textures)
     }
 
-    /// Emitted radiance towards the ray's origin.
+    /// Emitted radiance towards the ray's origin (emissive texture included).
     pub fn emission(&self, m: Materials) -> Vec3 {
         let mat = &m.materials[self.material as usize];
         if self.front || mat.double_sided {
-            mat.emission
+            mat.emission_at(self.uv, m.textures)
         } else {
             Vec3::ZERO
         }
     }
+}
+
+/// The shading normal of a normal-mapped hit (glTF 2.0 §3.9.3, `normalTexture`), in the
+/// orientation of the vertex normal `nv`: the tangent-space normal read at `uv` taken to
+/// world space by the frame (T, B, nv). T is the interpolated `TANGENT` orthogonalised
+/// against `nv`, B = (nv × T)·w with w the tangent's handedness; without tangents, T is the
+/// triangle's ∂p/∂u and w makes B point along −∂p/∂v (glTF's v runs down the image, the
+/// map's +Y up), both in the map's transformed UVs. `None` where no frame exists (UVs
+/// without area, a degenerate texel): the vertex normal is used.
+fn normal_mapped(
+    g: &Geometry,
+    i: usize,
+    nv: Vec3,
+    uv: Vec2,
+    b: Vec2,
+    map: &NormalMap,
+    surfaces: &crate::scene::Surfaces,
+) -> Option<Vec3> {
+    let n_ts = map.normal(&surfaces.textures, uv)?;
+    let w0 = 1.0 - b.x - b.y;
+    let given = g.attributes_of(i).and_then(|a| {
+        let t = a.tangents[0] * w0 + a.tangents[1] * b.x + a.tangents[2] * b.y;
+        (t.truncate().length_squared() > 0.0).then(|| {
+            let sign = if a.tangents[0].w < 0.0 { -1.0 } else { 1.0 };
+            (t.truncate(), sign)
+        })
+    });
+    let (t, sign) = match given {
+        Some(t) => t,
+        None => {
+            let tri = &g.triangles[i];
+            let sh = &g.shading[i];
+            let uvs = sh.uvs.map(|u| map.texture.transform.apply(u));
+            let (e1, e2) = (Vec3::from(tri.v1 - tri.v0), Vec3::from(tri.v2 - tri.v0));
+            let (d1, d2) = (uvs[1] - uvs[0], uvs[2] - uvs[0]);
+            let det = d1.x * d2.y - d2.x * d1.y;
+            if !(det.abs() > 0.0) {
+                return None;
+            }
+            let dpdu = (e1 * d2.y - e2 * d1.y) / det;
+            let dpdv = (e2 * d1.x - e1 * d2.x) / det;
+            let sign = if nv.cross(dpdu).dot(-dpdv) < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
+            (dpdu, sign)
+        }
+    };
+    let t = (t - nv * nv.dot(t)).normalize_or_zero();
+    if t == Vec3::ZERO || !t.is_finite() {
+        return None;
+    }
+    let bt = nv.cross(t) * sign;
+    let n = (t * n_ts.x + bt * n_ts.y + nv * n_ts.z).normalize_or_zero();
+    (n != Vec3::ZERO && n.is_finite()).then_some(n)
 }
 
 /// The surface the ray `o + t·d` meets first, if any.
@@ -189,6 +274,7 @@ pub fn direct_irradiance(
         let [u1, u2] = sampler.get2(i, dim + 1);
         let su = u1.sqrt();
         let y = Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
+        let bc = uniform_barycentric(u1, u2);
         let ny = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
         let d = y - o;
         let r2 = d.length_squared();
@@ -214,7 +300,8 @@ pub fn direct_irradiance(
         }
         // E = L_e cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
         // neither tiny nor huge scenes leave f32's range: (area / r²) is scale-free.
-        area += em.radiance * (cos_x * cos_y * (em.area / r2) / p_pick);
+        let l_e = frame.emitted_radiance(em, bc);
+        area += l_e * (cos_x * cos_y * (em.area / r2) / p_pick);
     }
     e + area / n as f32
 }

@@ -415,7 +415,7 @@ mod tests {
             assert!(!miss.hit() && miss.link().is_none());
         }
     }
-    use crate::scene::{FrameScene, Material, StaticSet};
+    use crate::scene::{FrameScene, StaticSet};
     use glam::Vec2;
 
     /// A floor (y = 0) and a wall (x = 0, height 1, long in z) whose face towards +x emits
@@ -433,6 +433,8 @@ mod tests {
                     uvs: [Vec2::ZERO; 3],
                     material: 0,
                     prim: 0,
+                    masked: false,
+                    attributes: crate::geom::NO_ATTRIBUTES,
                 });
             }
         };
@@ -464,7 +466,7 @@ mod tests {
             Geometry::default(),
             Vec::new(),
             camera,
-            &[Material::default()],
+            &crate::scene::Surfaces::default(),
         )
     }
 

@@ -206,6 +206,7 @@ impl Record {
             ng: self.ng,
             ns: self.normal,
             uv: glam::Vec2::ZERO,
+            color: glam::Vec4::ONE,
             offset: self.offset,
             material: 0,
             front: true,

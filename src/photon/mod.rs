@@ -25,7 +25,7 @@ pub mod precomputed;
 use std::f32::consts::PI;
 use std::num::NonZero;
 
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use serde::{Deserialize, Serialize};
@@ -368,7 +368,10 @@ fn emit(
                 }
             }
             let d = cosine_direction(n, u3.min(0.999_999_9), s.get(DIM_EMIT + 3));
-            Some((y + n * offset_of(tri), d, PI * e.radiance * e.area * sides))
+            // The radiance where the photon leaves (an emissive texture read there): chosen
+            // by the triangle's mean power, each photon carries its own point's.
+            let l_e = frame.emitted_radiance(e, Vec2::new(su * (1.0 - u2), su * u2));
+            Some((y + n * offset_of(tri), d, PI * l_e * e.area * sides))
         }
     }
 }

@@ -4,12 +4,12 @@
 
 use std::sync::Arc;
 
-use glam::{Mat3, Mat4, Vec2, Vec3};
+use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
 
-use super::{Clip, Light, LightKind, Material, Primitive, Projection};
+use super::{Clip, Light, LightKind, Primitive, Projection, Surfaces};
 use crate::accel::{Accel, StaticBvh};
 use crate::color::luminance;
-use crate::geom::{Geometry, Motion, Triangle, TriangleShading};
+use crate::geom::{Geometry, Motion, NO_ATTRIBUTES, Triangle, TriangleAttributes, TriangleShading};
 
 /// Static geometry and its BVH: evaluated and built once per render, shared by every frame.
 #[derive(Clone)]
@@ -94,12 +94,20 @@ impl Geometry {
         };
         let mut wpos = Vec::with_capacity(n);
         let mut wnrm = Vec::with_capacity(n);
+        let mut wtan = Vec::with_capacity(n);
         for v in 0..n {
             let m = if joints.is_some() { skin(v) } else { world };
             wpos.push(m.transform_point3(pos[v]));
             if let Some(nrm) = &nrm {
                 let nm = Mat3::from_mat4(m).inverse().transpose();
                 wnrm.push((nm * nrm[v]).normalize_or_zero());
+            }
+            if let Some(t) = p.tangents.as_ref().and_then(|t| t.get(v)) {
+                // Tangents are directions on the surface: transformed by the matrix itself;
+                // a mirroring matrix flips the bitangent's handedness.
+                let m3 = Mat3::from_mat4(m);
+                let w = if m3.determinant() < 0.0 { -t.w } else { t.w };
+                wtan.push((m3 * t.truncate()).normalize_or_zero().extend(w));
             }
         }
         let mirrored = joints.is_none() && world.determinant() < 0.0;
@@ -129,11 +137,29 @@ impl Geometry {
                 v1: b.into(),
                 v2: c.into(),
             });
+            let attributes = if p.colors.is_some() || !wtan.is_empty() {
+                let color = |i: usize| {
+                    p.colors
+                        .as_ref()
+                        .and_then(|c| c.get(i).copied())
+                        .unwrap_or(Vec4::ONE)
+                };
+                let tangent = |i: usize| wtan.get(i).copied().unwrap_or(Vec4::ZERO);
+                self.attributes.push(TriangleAttributes {
+                    colors: idx.map(color),
+                    tangents: idx.map(tangent),
+                });
+                (self.attributes.len() - 1) as u32
+            } else {
+                NO_ATTRIBUTES
+            };
             self.shading.push(TriangleShading {
                 normals,
                 uvs,
                 material: p.material as u32,
                 prim,
+                masked: p.masked,
+                attributes,
             });
         }
     }
@@ -270,9 +296,26 @@ pub struct Emitter {
     pub motion: Motion,
     pub triangle: u32,
     pub area: f32,
-    /// Emitted radiance.
+    /// Emitted radiance averaged over the triangle (exact without an emissive texture):
+    /// what its power, and so the probability of choosing it, is computed from.
     pub radiance: Vec3,
     pub double_sided: bool,
+    /// Its material has an emissive texture: the radiance at a point is
+    /// [`FrameScene::emitted_radiance`], not [`Emitter::radiance`].
+    pub textured: bool,
+}
+
+/// Samples per side of the stratified grid over which a textured emitter's radiance is
+/// averaged (8 × 8 = 64 points, uniform in area): the texture integrated over the triangle
+/// for its power. Only selection probabilities depend on it; every estimate reads the
+/// texture at its own point, so an inexact average adds noise, never bias.
+pub const EMISSION_AVERAGE_GRID: u32 = 8;
+
+/// Barycentrics (weights of `v1`, `v2`) of the uniform-area point `(u1, u2)` of a triangle
+/// (Shirley's square-root parameterisation).
+pub fn uniform_barycentric(u1: f32, u2: f32) -> Vec2 {
+    let su = u1.sqrt();
+    Vec2::new(su * (1.0 - u2), su * u2)
 }
 
 /// Emissive triangles with a power-proportional discrete distribution.
@@ -284,17 +327,38 @@ pub struct Emitters {
 }
 
 impl Emitters {
-    fn new(sets: [(&Geometry, Motion); 2], materials: &[Material]) -> Self {
+    fn new(sets: [(&Geometry, Motion); 2], surfaces: &Surfaces) -> Self {
         let mut list = Vec::new();
         let mut power = Vec::new();
         for (g, motion) in sets {
             for (i, (t, s)) in g.triangles.iter().zip(&g.shading).enumerate() {
-                let m = &materials[s.material as usize];
+                let m = &surfaces.materials[s.material as usize];
                 if !m.is_emissive() {
                     continue;
                 }
+                let radiance = match m.emissive_texture {
+                    None => m.emission,
+                    Some(_) => {
+                        let n = EMISSION_AVERAGE_GRID;
+                        let mut sum = Vec3::ZERO;
+                        for a in 0..n {
+                            for b in 0..n {
+                                let bc = uniform_barycentric(
+                                    (a as f32 + 0.5) / n as f32,
+                                    (b as f32 + 0.5) / n as f32,
+                                );
+                                let (uv, _) = Surfaces::uv_and_color(g, i, bc);
+                                sum += m.emission_at(uv, &surfaces.textures);
+                            }
+                        }
+                        sum / (n * n) as f32
+                    }
+                };
+                if radiance.max_element() <= 0.0 {
+                    continue;
+                }
                 let area = 0.5 * (t.v1 - t.v0).cross(t.v2 - t.v0).length();
-                let luminance = luminance(m.emission).max(1e-30);
+                let luminance = luminance(radiance).max(1e-30);
                 // Power is used only in ratios: area × luminance × sides. Computed in f64 so
                 // that kilometre-sized emitters do not overflow.
                 power.push(area as f64 * luminance as f64 * if m.double_sided { 2.0 } else { 1.0 });
@@ -302,8 +366,9 @@ impl Emitters {
                     motion,
                     triangle: i as u32,
                     area,
-                    radiance: m.emission,
+                    radiance,
                     double_sided: m.double_sided,
+                    textured: m.emissive_texture.is_some(),
                 });
             }
         }
@@ -341,6 +406,9 @@ pub struct FrameScene {
     pub lights: Vec<PunctualLight>,
     pub emitters: Emitters,
     pub camera: FrameCamera,
+    /// The scene's materials and textures (normal maps, vertex colours and emissive textures
+    /// are read where rays hit).
+    pub surfaces: Surfaces,
     /// [`StaticSet::bounds`], computed once per render.
     static_bounds: (Vec3, Vec3),
 }
@@ -352,7 +420,7 @@ impl FrameScene {
         dynamic_geometry: Geometry,
         lights: Vec<PunctualLight>,
         camera: FrameCamera,
-        materials: &[Material],
+        surfaces: &Surfaces,
     ) -> Self {
         let accel = Accel::with_static(statics.bvh.clone(), &dynamic_geometry);
         let static_geometry = statics.geometry.clone();
@@ -361,7 +429,7 @@ impl FrameScene {
                 (&static_geometry, Motion::Static),
                 (&dynamic_geometry, Motion::Dynamic),
             ],
-            materials,
+            surfaces,
         );
         FrameScene {
             static_geometry,
@@ -370,8 +438,22 @@ impl FrameScene {
             lights,
             emitters,
             camera,
+            surfaces: surfaces.clone(),
             static_bounds: statics.bounds,
         }
+    }
+
+    /// Radiance emitter `e` emits at barycentrics `b` of its triangle (the emissive texture
+    /// read there, when it has one).
+    pub fn emitted_radiance(&self, e: &Emitter, b: Vec2) -> Vec3 {
+        if !e.textured {
+            return e.radiance;
+        }
+        let g = self.geometry(e.motion);
+        let i = e.triangle as usize;
+        let (uv, _) = Surfaces::uv_and_color(g, i, b);
+        self.surfaces.materials[g.shading[i].material as usize]
+            .emission_at(uv, &self.surfaces.textures)
     }
 
     pub fn geometry(&self, motion: Motion) -> &Geometry {

@@ -16,7 +16,7 @@ use gltf::mesh::util::{
 };
 
 use super::anim::{Animation, Channel, Interpolation, Property, Sampler};
-use super::material::{Material, Texture, TextureRef, Wrap};
+use super::material::{Material, NormalMap, Texture, TextureRef, UvTransform, Wrap};
 use super::{
     Camera, Clip, Layer, Light, LightKind, Mesh, MorphTarget, Motion, Node, Primitive, Projection,
     Skin,
@@ -25,8 +25,15 @@ use crate::color::srgb_to_linear;
 use crate::error::{Error, Result};
 
 /// Extensions whose meaning the renderer implements.
-pub const SUPPORTED_EXTENSIONS: &[&str] =
-    &["KHR_lights_punctual", "KHR_materials_emissive_strength"];
+pub const SUPPORTED_EXTENSIONS: &[&str] = &[
+    "KHR_lights_punctual",
+    "KHR_materials_emissive_strength",
+    "KHR_texture_transform",
+];
+
+/// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out
+/// (deterministic, noise-free), with a warning per material.
+pub const BLEND_CUTOFF: f32 = 0.5;
 
 /// The extras key that carries a prim's motion tag (schemas/motion-tag.schema.json).
 pub const MOTION_KEY: &str = "motion";
@@ -55,8 +62,7 @@ fn name_of(kind: &str, index: usize, name: Option<&str>) -> String {
 /// Loads one glTF file. `offsets` are where this layer's materials and textures will sit in
 /// the scene's global lists.
 pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
-    let mut warnings = Vec::new();
-    let gltf = open(path, &mut warnings)?;
+    let (gltf, optional) = open(path)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let doc = &gltf.document;
     check_files(path, doc, base)?;
@@ -70,10 +76,27 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
         buffers: &buffers,
         base,
         offsets,
-        warnings,
+        warnings: Vec::new(),
+        reported: Vec::new(),
     };
     let (materials, textures) = r.materials()?;
-    let (meshes, degenerate_triangles) = r.meshes()?;
+    // Extensions a material uses were named with that material; the others once here.
+    let optional: Vec<&str> = optional
+        .iter()
+        .map(String::as_str)
+        .filter(|e| !r.reported.iter().any(|x| x == e))
+        .collect();
+    if !optional.is_empty() {
+        r.warnings.insert(
+            0,
+            format!(
+                "{}: optional extensions ignored: {}",
+                path.display(),
+                optional.join(", ")
+            ),
+        );
+    }
+    let (meshes, degenerate_triangles) = r.meshes(&materials)?;
     let skins = r.skins();
     let lights = r.lights()?;
     let cameras = r.cameras()?;
@@ -99,20 +122,24 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
 }
 
 /// Reads and parses the file; the extensions are checked before the full parse, so that a
-/// file needing an unsupported extension is reported as such rather than as invalid.
-fn open(path: &Path, warnings: &mut Vec<String>) -> Result<gltf::Gltf> {
+/// file needing an unsupported extension is reported as such rather than as invalid. Also
+/// returns the unsupported optional extensions.
+fn open(path: &Path) -> Result<(gltf::Gltf, Vec<String>)> {
     let bytes =
         std::fs::read(path).map_err(|e| Error::input(path, "file", format!("cannot read: {e}")))?;
     let unchecked = gltf::Gltf::from_slice_without_validation(&bytes)
         .map_err(|e| Error::input(path, "file", format!("not a valid glTF or GLB file: {e}")))?;
-    check_extensions(path, &unchecked, warnings)?;
+    let optional = check_extensions(path, &unchecked)?;
     drop(unchecked);
-    gltf::Gltf::from_slice(&bytes).map_err(|e| Error::input(path, "file", e.to_string()))
+    let gltf =
+        gltf::Gltf::from_slice(&bytes).map_err(|e| Error::input(path, "file", e.to_string()))?;
+    Ok((gltf, optional))
 }
 
 /// Reads `extensionsRequired` and `extensionsUsed` (glTF 2.0 §3.12): a required extension
-/// outside [`SUPPORTED_EXTENSIONS`] is an error, an optional one a warning.
-fn check_extensions(path: &Path, unchecked: &gltf::Gltf, warnings: &mut Vec<String>) -> Result<()> {
+/// outside [`SUPPORTED_EXTENSIONS`] is an error; the optional ones are returned, to be
+/// warned about (by the material that uses them, or once for the file).
+fn check_extensions(path: &Path, unchecked: &gltf::Gltf) -> Result<Vec<String>> {
     let required: Vec<String> = unchecked
         .extensions_required()
         .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
@@ -129,18 +156,11 @@ fn check_extensions(path: &Path, unchecked: &gltf::Gltf, warnings: &mut Vec<Stri
             ),
         ));
     }
-    let optional: Vec<&str> = unchecked
+    Ok(unchecked
         .extensions_used()
         .filter(|e| !SUPPORTED_EXTENSIONS.contains(e))
-        .collect();
-    if !optional.is_empty() {
-        warnings.push(format!(
-            "{}: optional extensions ignored: {}",
-            path.display(),
-            optional.join(", ")
-        ));
-    }
-    Ok(())
+        .map(str::to_owned)
+        .collect())
 }
 
 /// Checks that the files named by external buffer and image URIs (glTF 2.0 §3.6.1, §3.8.3)
@@ -193,16 +213,41 @@ struct Reader<'a> {
     base: &'a Path,
     offsets: Offsets,
     warnings: Vec<String>,
+    /// Extensions already named in a material's warning.
+    reported: Vec<String>,
 }
 
-/// The base colour textures decoded so far: each glTF image becomes one [`Texture`], decoded
-/// the first time a material uses it.
+/// The textures decoded so far: each glTF image becomes one [`Texture`] per colour space it
+/// is read in (sRGB for colour, linear for normal maps), decoded the first time a material
+/// uses it so.
 struct Textures {
-    /// Every image of the file, decoded when the first base colour texture is met.
+    /// Every image of the file, decoded when the first texture is met.
     images: Option<Vec<gltf::image::Data>>,
-    /// The global texture index of each image already decoded.
-    of_image: Vec<Option<usize>>,
+    /// The global texture index of each image already converted, linear then sRGB.
+    of_image: Vec<[Option<usize>; 2]>,
     list: Vec<Texture>,
+}
+
+/// Which texture slot of a material a [`TextureRef`] is read for (messages, colour space).
+#[derive(Clone, Copy)]
+enum Slot {
+    BaseColor,
+    Emissive,
+    Normal,
+}
+
+impl Slot {
+    fn key(self) -> &'static str {
+        match self {
+            Slot::BaseColor => "pbrMetallicRoughness.baseColorTexture",
+            Slot::Emissive => "emissiveTexture",
+            Slot::Normal => "normalTexture",
+        }
+    }
+
+    fn srgb(self) -> bool {
+        !matches!(self, Slot::Normal)
+    }
 }
 
 impl<'a> Reader<'a> {
@@ -223,12 +268,12 @@ impl<'a> Reader<'a> {
         move |b| Some(&buffers[b.index()].0[..])
     }
 
-    /// Reads `materials` (glTF 2.0 §3.9) and the textures they use; only base colour
-    /// textures are decoded (sRGB → linear).
+    /// Reads `materials` (glTF 2.0 §3.9) and the textures they use: base colour and emissive
+    /// textures (sRGB → linear) and normal maps (linear).
     fn materials(&mut self) -> Result<(Vec<Material>, Vec<Texture>)> {
         let mut textures = Textures {
             images: None,
-            of_image: vec![None; self.doc.images().len()],
+            of_image: vec![[None; 2]; self.doc.images().len()],
             list: Vec::new(),
         };
         let mut materials = Vec::new();
@@ -238,18 +283,88 @@ impl<'a> Reader<'a> {
         Ok((materials, textures.list))
     }
 
-    /// Reads one material's metallic-roughness factors, base colour texture and emission.
+    /// Reads one material: base colour (factor, texture), alpha mode, normal map, emission
+    /// (factor, texture, strength) and the metallic-roughness factors. What it uses and
+    /// anchorage does not model is named in one warning each.
     fn material(&mut self, m: &gltf::Material<'_>, textures: &mut Textures) -> Result<Material> {
         let at = name_of("materials", m.index().unwrap_or(0), m.name());
         let pbr = m.pbr_metallic_roughness();
         let base_color_texture = match pbr.base_color_texture() {
-            Some(info) => Some(self.base_color_texture(&at, &info, textures)?),
+            Some(info) => Some(self.texture_ref(
+                &at,
+                Slot::BaseColor,
+                &info.texture(),
+                info.tex_coord(),
+                Ok(info_transform(&info)),
+                textures,
+            )?),
             None => None,
         };
-        if m.emissive_texture().is_some() {
+        let emissive_texture = match m.emissive_texture() {
+            Some(info) => Some(self.texture_ref(
+                &at,
+                Slot::Emissive,
+                &info.texture(),
+                info.tex_coord(),
+                Ok(info_transform(&info)),
+                textures,
+            )?),
+            None => None,
+        };
+        let normal_texture = match m.normal_texture() {
+            Some(n) => {
+                if !n.scale().is_finite() {
+                    return Err(self.bad(&format!("{at}.normalTexture.scale"), "must be finite"));
+                }
+                Some(NormalMap {
+                    texture: self.texture_ref(
+                        &at,
+                        Slot::Normal,
+                        &n.texture(),
+                        n.tex_coord(),
+                        n.extension_value("KHR_texture_transform")
+                            .map(texture_transform)
+                            .transpose(),
+                        textures,
+                    )?,
+                    scale: n.scale(),
+                })
+            }
+            None => None,
+        };
+        let alpha_cutoff = match m.alpha_mode() {
+            gltf::material::AlphaMode::Opaque => None,
+            gltf::material::AlphaMode::Mask => {
+                let c = m.alpha_cutoff().unwrap_or(0.5);
+                if !(c.is_finite() && c >= 0.0) {
+                    return Err(self.bad(
+                        &format!("{at}.alphaCutoff"),
+                        "must be finite and non-negative",
+                    ));
+                }
+                Some(c)
+            }
+            gltf::material::AlphaMode::Blend => {
+                self.warn(format_args!(
+                    "{at}: alphaMode BLEND is rendered as a cut-out at alpha {BLEND_CUTOFF} (no partial transparency)"
+                ));
+                Some(BLEND_CUTOFF)
+            }
+        };
+        if m.occlusion_texture().is_some() {
             self.warn(format_args!(
-                "{at}: emissiveTexture is not supported; emission uses emissiveFactor alone"
+                "{at}: occlusionTexture is ignored (global illumination computes occlusion)"
             ));
+        }
+        if let Some(ext) = m.extensions() {
+            for name in ext.keys() {
+                self.warn(format_args!(
+                    "{at}: {name} is not modelled; the material renders without it"
+                ));
+                if !self.reported.contains(name) {
+                    self.reported.push(name.clone());
+                }
+            }
         }
         let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
         if !emission.is_finite() || emission.min_element() < 0.0 {
@@ -259,50 +374,70 @@ impl<'a> Reader<'a> {
             name: m.name().unwrap_or("").to_owned(),
             base_color: Vec4::from(pbr.base_color_factor()),
             base_color_texture,
+            alpha_cutoff,
+            normal_texture,
             emission,
+            emissive_texture,
             double_sided: m.double_sided(),
             roughness: pbr.roughness_factor(),
             metallic: pbr.metallic_factor(),
         })
     }
 
-    /// Reads the base colour texture of material `at` (glTF 2.0 §3.8): its image, decoded
-    /// once, and its sampler's wrap modes.
-    fn base_color_texture(
-        &self,
+    /// Reads a texture reference of material `at` (glTF 2.0 §3.8): its image, decoded once
+    /// per colour space, its sampler's wrap modes and its `KHR_texture_transform`
+    /// (`transform`: the extension read, if present, or what is wrong with it), whose
+    /// `texCoord` overrides the reference's. Every texture reads `TEXCOORD_0`; another set
+    /// is read as set 0 with a warning.
+    fn texture_ref(
+        &mut self,
         at: &str,
-        info: &gltf::texture::Info<'_>,
+        slot: Slot,
+        tex: &gltf::Texture<'_>,
+        tex_coord: u32,
+        transform: std::result::Result<Option<TransformRead>, String>,
         textures: &mut Textures,
     ) -> Result<TextureRef> {
-        if info.tex_coord() != 0 {
+        let key = format!("{at}.{}", slot.key());
+        let (transform, override_coord) = transform
+            .map_err(|m| self.bad(&format!("{key}.extensions.KHR_texture_transform"), m))?
+            .unwrap_or((UvTransform::IDENTITY, None));
+        if !transform.is_finite() {
             return Err(self.bad(
-                at,
-                "base colour texture uses TEXCOORD_1 or higher; only TEXCOORD_0 is supported",
+                &format!("{key}.extensions.KHR_texture_transform"),
+                "offset, rotation and scale must be finite",
             ));
         }
-        let tex = info.texture();
-        let texture = self.texture_of_image(tex.source().index(), textures)?;
+        let set = override_coord.unwrap_or(tex_coord);
+        if set != 0 {
+            self.warn(format_args!(
+                "{key} uses TEXCOORD_{set}, which anchorage does not read; TEXCOORD_0 is used instead"
+            ));
+        }
+        let texture = self.texture_of_image(tex.source().index(), slot.srgb(), textures)?;
         let s = tex.sampler();
         Ok(TextureRef {
             texture,
             wrap: [wrap(s.wrap_s()), wrap(s.wrap_t())],
+            transform,
         })
     }
 
-    /// The global texture index of `image` (glTF 2.0 §3.8.3): the file's images are imported
-    /// when a texture is first needed, and each is converted the first time it is used.
-    fn texture_of_image(&self, image: usize, textures: &mut Textures) -> Result<usize> {
+    /// The global texture index of `image` (glTF 2.0 §3.8.3) in the colour space `srgb`
+    /// says: the file's images are imported when a texture is first needed, and each is
+    /// converted the first time it is used in that space.
+    fn texture_of_image(&self, image: usize, srgb: bool, textures: &mut Textures) -> Result<usize> {
         if textures.images.is_none() {
             textures.images = Some(
                 gltf::import_images(self.doc, Some(self.base), self.buffers)
                     .map_err(|e| self.bad("images", format!("cannot decode image: {e}")))?,
             );
         }
-        if let Some(i) = textures.of_image[image] {
+        if let Some(i) = textures.of_image[image][srgb as usize] {
             return Ok(i);
         }
         let data = &textures.images.as_ref().expect("decoded above")[image];
-        let t = decode_texture(data).ok_or_else(|| {
+        let t = decode_texture(data, srgb).ok_or_else(|| {
             self.bad(
                 &name_of("images", image, None),
                 format!("unsupported pixel format {:?}", data.format),
@@ -310,13 +445,13 @@ impl<'a> Reader<'a> {
         })?;
         textures.list.push(t);
         let i = self.offsets.textures + textures.list.len() - 1;
-        textures.of_image[image] = Some(i);
+        textures.of_image[image][srgb as usize] = Some(i);
         Ok(i)
     }
 
-    /// Reads `meshes` (glTF 2.0 §3.7.2); also returns how many degenerate triangles were
-    /// dropped, and warns once if any were.
-    fn meshes(&mut self) -> Result<(Vec<Mesh>, usize)> {
+    /// Reads `meshes` (glTF 2.0 §3.7.2) whose primitives use this file's `materials`; also
+    /// returns how many degenerate triangles were dropped, and warns once if any were.
+    fn meshes(&mut self, materials: &[Material]) -> Result<(Vec<Mesh>, usize)> {
         let mut meshes = Vec::new();
         let mut degenerate = 0usize;
         for mesh in self.doc.meshes() {
@@ -324,7 +459,7 @@ impl<'a> Reader<'a> {
             let mut primitives = Vec::new();
             for p in mesh.primitives() {
                 let at = format!("{mesh_at}.primitives[{}]", p.index());
-                if let Some((primitive, dropped)) = self.primitive(&at, &p)? {
+                if let Some((primitive, dropped)) = self.primitive(&at, &p, materials)? {
                     degenerate += dropped;
                     primitives.push(primitive);
                 }
@@ -344,11 +479,14 @@ impl<'a> Reader<'a> {
     }
 
     /// Reads one primitive (glTF 2.0 §3.7.2.1) with the number of degenerate triangles
-    /// dropped from it; points and lines are skipped with a warning (`None`).
+    /// dropped from it; points and lines are skipped with a warning (`None`). `COLOR_0` is
+    /// read as linear RGBA (normalized integers scaled to [0, 1]); `TANGENT` only where the
+    /// material has a normal map.
     fn primitive(
         &mut self,
         at: &str,
         p: &gltf::Primitive<'_>,
+        materials: &[Material],
     ) -> Result<Option<(Primitive, usize)>> {
         let mode = p.mode();
         if !matches!(
@@ -382,16 +520,35 @@ impl<'a> Reader<'a> {
             .map(|w| w.into_f32().collect())
             .unwrap_or_default();
         let targets = self.morph_targets(at, r.read_morph_targets(), positions.len())?;
+        let local = p.material().index().and_then(|i| materials.get(i));
         let material = match p.material().index() {
             Some(i) => self.offsets.materials + 1 + i,
             None => 0,
+        };
+        let colors: Option<Vec<Vec4>> = r
+            .read_colors(0)
+            .map(|c| c.into_rgba_f32().map(Vec4::from).collect());
+        if let Some(c) = &colors
+            && (c.len() != positions.len() || c.iter().any(|v| !v.is_finite()))
+        {
+            return Err(self.bad(at, "COLOR_0 must be finite and one per vertex"));
+        }
+        let tangents: Option<Vec<Vec4>> = if local.is_some_and(|m| m.normal_texture.is_some()) {
+            r.read_tangents()
+                .map(|t| t.map(Vec4::from).collect::<Vec<_>>())
+                .filter(|t| t.len() == positions.len() && t.iter().all(|v| v.is_finite()))
+        } else {
+            None
         };
         let primitive = Primitive {
             positions,
             normals: normals.filter(|n| n.iter().all(|v| v.is_finite())),
             uvs,
+            colors,
+            tangents,
             indices,
             material,
+            masked: local.is_some_and(|m| m.alpha_cutoff.is_some()),
             joints,
             weights,
             targets,
@@ -838,8 +995,66 @@ fn wrap(w: gltf::texture::WrappingMode) -> Wrap {
     }
 }
 
-/// Decodes an 8- or 16-bit colour image to linear RGBA (sRGB decoded, alpha linear).
-fn decode_texture(data: &gltf::image::Data) -> Option<Texture> {
+/// A `KHR_texture_transform` as read: the transform and the `texCoord` it overrides, if any.
+type TransformRead = (UvTransform, Option<u32>);
+
+/// The `KHR_texture_transform` of a texture info (which the gltf crate parses).
+fn info_transform(info: &gltf::texture::Info<'_>) -> Option<TransformRead> {
+    info.texture_transform().map(|t| {
+        (
+            UvTransform::new(Vec2::from(t.offset()), t.rotation(), Vec2::from(t.scale())),
+            t.tex_coord(),
+        )
+    })
+}
+
+/// Reads a `KHR_texture_transform` object from its JSON (for `normalTexture`, whose
+/// extensions the gltf crate leaves as JSON). Offsets, rotation and scale must be finite
+/// numbers.
+fn texture_transform(v: &serde_json::Value) -> std::result::Result<TransformRead, String> {
+    let num = |key: &str, default: f32| -> std::result::Result<f32, String> {
+        match v.get(key) {
+            None => Ok(default),
+            Some(x) => x
+                .as_f64()
+                .map(|f| f as f32)
+                .filter(|f| f.is_finite())
+                .ok_or_else(|| format!("{key} must be a finite number, got {x}")),
+        }
+    };
+    let pair = |key: &str, default: f32| -> std::result::Result<Vec2, String> {
+        match v.get(key) {
+            None => Ok(Vec2::splat(default)),
+            Some(serde_json::Value::Array(a)) if a.len() == 2 => {
+                let c: Vec<Option<f32>> = a
+                    .iter()
+                    .map(|x| x.as_f64().map(|f| f as f32).filter(|f| f.is_finite()))
+                    .collect();
+                match c[..] {
+                    [Some(x), Some(y)] => Ok(Vec2::new(x, y)),
+                    _ => Err(format!("{key} must be two finite numbers")),
+                }
+            }
+            Some(x) => Err(format!("{key} must be two finite numbers, got {x}")),
+        }
+    };
+    let offset = pair("offset", 0.0)?;
+    let scale = pair("scale", 1.0)?;
+    let rotation = num("rotation", 0.0)?;
+    let tex_coord = match v.get("texCoord") {
+        None => None,
+        Some(x) => Some(
+            x.as_u64()
+                .and_then(|n| u32::try_from(n).ok())
+                .ok_or_else(|| format!("texCoord must be a non-negative integer, got {x}"))?,
+        ),
+    };
+    Ok((UvTransform::new(offset, rotation, scale), tex_coord))
+}
+
+/// Decodes an 8- or 16-bit image to linear RGBA: colour channels sRGB-decoded when `srgb`
+/// (base colour, emission), else read as they are (normal maps); alpha always linear.
+fn decode_texture(data: &gltf::image::Data, srgb: bool) -> Option<Texture> {
     use gltf::image::Format::*;
     let (channels, wide) = match data.format {
         R8 => (1, false),
@@ -863,7 +1078,9 @@ fn decode_texture(data: &gltf::image::Data) -> Option<Texture> {
     // 256-entry table for 8-bit sRGB decoding.
     let lut: Vec<f32> = (0..256).map(|c| srgb_to_linear(c as f32 / 255.0)).collect();
     let decode = |c: f32| {
-        if wide {
+        if !srgb {
+            c
+        } else if wide {
             srgb_to_linear(c)
         } else {
             lut[(c * 255.0).round() as usize]

@@ -1,9 +1,19 @@
 //! Materials as the algorithm needs them (DESIGN.md, Scene conventions): glTF
 //! metallic-roughness reduced to a Lambertian albedo (base colour factor × base colour
-//! texture), emission (factor × `KHR_materials_emissive_strength`), and roughness/metallic
-//! kept for the glossy lobe of the paper's §5.
+//! texture × `COLOR_0`), alpha cut-out (`alphaMode` `MASK`; `BLEND` as a cut-out at 0.5),
+//! normal maps, emission (factor × emissive texture × `KHR_materials_emissive_strength`),
+//! `KHR_texture_transform` on every texture, and roughness/metallic kept for the glossy lobe
+//! of the paper's §5.
+//!
+//! [`Surfaces`] is the scene's material and texture list shared by every frame; it is also
+//! the [`AlphaTest`] the BVH traversal asks about hits on masked triangles, so that camera,
+//! shadow, photon, final-gather and path rays all pass through cut-out parts alike.
+
+use std::sync::Arc;
 
 use glam::{Vec2, Vec3, Vec4};
+
+use crate::geom::{AlphaTest, Geometry};
 
 /// Texture wrap modes (glTF `sampler.wrapS/wrapT`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -59,13 +69,78 @@ impl Texture {
     }
 }
 
-/// A base colour texture reference.
+/// A `KHR_texture_transform`: `uv' = T · R · S · uv` with the extension's translation
+/// (`offset`), rotation (radians, counter-clockwise in UV space) and scale, stored as the
+/// 2×3 matrix `[a b c; d e f]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UvTransform([f32; 6]);
+
+impl UvTransform {
+    pub const IDENTITY: UvTransform = UvTransform([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+
+    /// The extension's matrix: translation × rotation × scale.
+    pub fn new(offset: Vec2, rotation: f32, scale: Vec2) -> Self {
+        let (s, c) = rotation.sin_cos();
+        UvTransform([
+            c * scale.x,
+            s * scale.y,
+            offset.x,
+            -s * scale.x,
+            c * scale.y,
+            offset.y,
+        ])
+    }
+
+    pub fn is_finite(&self) -> bool {
+        self.0.iter().all(|v| v.is_finite())
+    }
+
+    #[inline]
+    pub fn apply(&self, uv: Vec2) -> Vec2 {
+        let m = &self.0;
+        Vec2::new(
+            m[0] * uv.x + m[1] * uv.y + m[2],
+            m[3] * uv.x + m[4] * uv.y + m[5],
+        )
+    }
+}
+
+/// A material's reference to a texture: which, how it wraps and its UV transform.
 #[derive(Debug, Clone, Copy)]
 pub struct TextureRef {
     /// Index into the scene's texture list.
     pub texture: usize,
-    /// Which UV set (`TEXCOORD_n`) it reads; only set 0 is carried, others are rejected.
     pub wrap: [Wrap; 2],
+    /// `KHR_texture_transform` (identity without it). Every texture reads `TEXCOORD_0`; a
+    /// texture that names another set is read from set 0 with a warning on load.
+    pub transform: UvTransform,
+}
+
+impl TextureRef {
+    /// The texture's value at the surface's `TEXCOORD_0` coordinate `uv`.
+    #[inline]
+    pub fn sample(&self, textures: &[Texture], uv: Vec2) -> Vec4 {
+        textures[self.texture].sample(self.transform.apply(uv), self.wrap)
+    }
+}
+
+/// A tangent-space normal map (glTF `normalTexture`): linear RGB, `scale` multiplying the
+/// X and Y components.
+#[derive(Debug, Clone, Copy)]
+pub struct NormalMap {
+    pub texture: TextureRef,
+    pub scale: f32,
+}
+
+impl NormalMap {
+    /// The tangent-space normal at `uv` (+X along the tangent, +Y along the bitangent, +Z
+    /// out of the surface), unit length; `None` where the texel is degenerate.
+    pub fn normal(&self, textures: &[Texture], uv: Vec2) -> Option<Vec3> {
+        let c = self.texture.sample(textures, uv).truncate() * 2.0 - Vec3::ONE;
+        let n = Vec3::new(c.x * self.scale, c.y * self.scale, c.z);
+        let n = n.normalize_or_zero();
+        (n != Vec3::ZERO).then_some(n)
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -74,8 +149,15 @@ pub struct Material {
     /// Base colour factor (linear RGBA).
     pub base_color: Vec4,
     pub base_color_texture: Option<TextureRef>,
-    /// Emitted radiance: emissive factor × emissive strength.
+    /// Where alpha below this is cut out (glTF `alphaCutoff` for `MASK`, 0.5 for `BLEND`);
+    /// `None` for opaque materials (`OPAQUE`, alpha ignored).
+    pub alpha_cutoff: Option<f32>,
+    /// Tangent-space normal map (`normalTexture`).
+    pub normal_texture: Option<NormalMap>,
+    /// Emitted radiance: emissive factor × emissive strength (× the emissive texture).
     pub emission: Vec3,
+    /// Emissive texture (sRGB-decoded), multiplying [`Material::emission`].
+    pub emissive_texture: Option<TextureRef>,
     /// Emission from both faces (glTF `doubleSided`), else from the front face only.
     pub double_sided: bool,
     pub roughness: f32,
@@ -89,7 +171,10 @@ impl Default for Material {
             name: "default".into(),
             base_color: Vec4::ONE,
             base_color_texture: None,
+            alpha_cutoff: None,
+            normal_texture: None,
             emission: Vec3::ZERO,
+            emissive_texture: None,
             double_sided: false,
             roughness: 1.0,
             metallic: 1.0,
@@ -98,17 +183,90 @@ impl Default for Material {
 }
 
 impl Material {
-    /// Lambertian albedo at texture coordinate `uv`, clamped to [0, 1] for energy conservation.
-    pub fn albedo(&self, uv: Vec2, textures: &[Texture]) -> Vec3 {
-        let mut c = self.base_color;
+    /// Base colour (linear RGBA) at texture coordinate `uv` with vertex colour `color`:
+    /// factor × texture × `COLOR_0` (glTF 2.0 §3.9.2).
+    pub fn base_color_at(&self, uv: Vec2, color: Vec4, textures: &[Texture]) -> Vec4 {
+        let mut c = self.base_color * color;
         if let Some(t) = self.base_color_texture {
-            c *= textures[t.texture].sample(uv, t.wrap);
+            c *= t.sample(textures, uv);
         }
-        c.truncate().clamp(Vec3::ZERO, Vec3::ONE)
+        c
+    }
+
+    /// Lambertian albedo at texture coordinate `uv` with vertex colour `color`, clamped to
+    /// [0, 1] for energy conservation.
+    pub fn albedo(&self, uv: Vec2, color: Vec4, textures: &[Texture]) -> Vec3 {
+        self.base_color_at(uv, color, textures)
+            .truncate()
+            .clamp(Vec3::ZERO, Vec3::ONE)
+    }
+
+    /// Whether the surface is there at `uv` with vertex colour `color`: alpha (factor ×
+    /// texture × `COLOR_0`) at or above the cutoff, or the material is opaque.
+    pub fn opaque_at(&self, uv: Vec2, color: Vec4, textures: &[Texture]) -> bool {
+        match self.alpha_cutoff {
+            None => true,
+            Some(cutoff) => {
+                let mut a = self.base_color.w * color.w;
+                if let Some(t) = self.base_color_texture {
+                    a *= t.sample(textures, uv).w;
+                }
+                a >= cutoff
+            }
+        }
+    }
+
+    /// Emitted radiance at `uv`: [`Material::emission`] × the emissive texture.
+    pub fn emission_at(&self, uv: Vec2, textures: &[Texture]) -> Vec3 {
+        match self.emissive_texture {
+            Some(t) => self.emission * t.sample(textures, uv).truncate(),
+            None => self.emission,
+        }
     }
 
     pub fn is_emissive(&self) -> bool {
         self.emission.max_element() > 0.0
+    }
+}
+
+/// The scene's materials (index 0 is glTF's default material) and textures, shared by every
+/// frame and by both geometry sets as their [`AlphaTest`].
+#[derive(Debug, Clone)]
+pub struct Surfaces {
+    pub materials: Arc<[Material]>,
+    pub textures: Arc<[Texture]>,
+}
+
+impl Default for Surfaces {
+    /// glTF's default material alone.
+    fn default() -> Self {
+        Surfaces {
+            materials: Arc::from(vec![Material::default()]),
+            textures: Arc::from(Vec::new()),
+        }
+    }
+}
+
+impl Surfaces {
+    /// Texture coordinate and vertex colour of triangle `i` of `g` at barycentrics `b`.
+    pub fn uv_and_color(g: &Geometry, i: usize, b: Vec2) -> (Vec2, Vec4) {
+        let sh = &g.shading[i];
+        let w = 1.0 - b.x - b.y;
+        let uv = sh.uvs[0] * w + sh.uvs[1] * b.x + sh.uvs[2] * b.y;
+        let color = g.attributes_of(i).map_or(Vec4::ONE, |a| {
+            a.colors[0] * w + a.colors[1] * b.x + a.colors[2] * b.y
+        });
+        (uv, color)
+    }
+}
+
+impl AlphaTest for Surfaces {
+    fn opaque(&self, g: &Geometry, triangle: usize, b: Vec2) -> bool {
+        let (uv, color) = Surfaces::uv_and_color(g, triangle, b);
+        match self.materials.get(g.shading[triangle].material as usize) {
+            Some(m) => m.opaque_at(uv, color, &self.textures),
+            None => true,
+        }
     }
 }
 
@@ -125,6 +283,26 @@ mod tests {
         assert_eq!(Wrap::MirroredRepeat.apply(4, 4), 3);
         assert_eq!(Wrap::MirroredRepeat.apply(-1, 4), 0);
         assert_eq!(Wrap::MirroredRepeat.apply(8, 4), 0);
+    }
+
+    /// `KHR_texture_transform` is T · R · S with R turning (1, 0) towards (0, −1) — the
+    /// direction the Khronos TextureTransformTest model checks (as three.js and
+    /// cesium-native apply it) — scale first, offset last.
+    #[test]
+    fn texture_transform_scales_then_rotates_then_offsets() {
+        let t = UvTransform::new(
+            Vec2::new(0.5, 0.25),
+            std::f32::consts::FRAC_PI_2,
+            Vec2::new(2.0, 3.0),
+        );
+        let p = t.apply(Vec2::new(1.0, 0.0));
+        assert!((p - Vec2::new(0.5, -1.75)).length() < 1e-6, "{p}");
+        let p = t.apply(Vec2::new(0.0, 1.0));
+        assert!((p - Vec2::new(3.5, 0.25)).length() < 1e-6, "{p}");
+        assert_eq!(
+            UvTransform::IDENTITY.apply(Vec2::new(0.3, 0.7)),
+            Vec2::new(0.3, 0.7)
+        );
     }
 
     #[test]

@@ -17,6 +17,7 @@ pub mod material;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use glam::{Mat4, Quat, Vec3};
@@ -24,7 +25,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 pub use frame::{CameraRay, FrameCamera, FrameScene, PunctualLight, StaticSet};
-pub use material::{Material, Texture};
+pub use material::{Material, Surfaces, Texture};
 
 use crate::error::{Error, Result};
 use crate::geom::{Geometry, Motion};
@@ -118,10 +119,18 @@ pub struct Primitive {
     pub positions: Vec<Vec3>,
     pub normals: Option<Vec<Vec3>>,
     pub uvs: Option<Vec<glam::Vec2>>,
+    /// Linear RGBA vertex colours (`COLOR_0`), one per vertex.
+    pub colors: Option<Vec<glam::Vec4>>,
+    /// Tangents with the bitangent's sign in `w` (`TANGENT`), kept only when the material
+    /// has a normal map.
+    pub tangents: Option<Vec<glam::Vec4>>,
     /// Triangle list, degenerate triangles removed.
     pub indices: Vec<u32>,
     /// Index into [`Scene::materials`].
     pub material: usize,
+    /// The material cuts the surface out (alpha `MASK` or `BLEND`): its triangles are
+    /// alpha-tested by every ray.
+    pub masked: bool,
     pub joints: Vec<[u16; 4]>,
     pub weights: Vec<[f32; 4]>,
     pub targets: Vec<MorphTarget>,
@@ -216,8 +225,8 @@ pub struct Layer {
 pub struct Scene {
     pub layers: Vec<Layer>,
     /// Index 0 is glTF's default material.
-    pub materials: Vec<Material>,
-    pub textures: Vec<Texture>,
+    pub materials: Arc<[Material]>,
+    pub textures: Arc<[Texture]>,
     /// The camera the job selects: (layer, node) of a glTF camera, or the job's own.
     /// Always present in a scene from [`Scene::load`].
     pub camera: Option<CameraChoice>,
@@ -637,8 +646,8 @@ impl Scene {
         };
         Ok(Scene {
             layers,
-            materials,
-            textures,
+            materials: materials.into(),
+            textures: textures.into(),
             camera,
         })
     }
@@ -659,10 +668,22 @@ impl Scene {
             .reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
     }
 
+    /// The materials and textures, shared (no copy).
+    pub fn surfaces(&self) -> Surfaces {
+        Surfaces {
+            materials: self.materials.clone(),
+            textures: self.textures.clone(),
+        }
+    }
+
     /// World-space triangles of every prim with the given motion at time `t`: skinning
-    /// (glTF §3.7.3) and morph targets (§3.7.2.2) applied.
+    /// (glTF §3.7.3) and morph targets (§3.7.2.2) applied. Masked triangles are alpha-tested
+    /// against the scene's materials.
     pub fn geometry(&self, t: f32, motion: Motion) -> Geometry {
-        let mut g = Geometry::default();
+        let mut g = Geometry {
+            alpha: Some(Arc::new(self.surfaces())),
+            ..Geometry::default()
+        };
         let mut prim_base = 0u32;
         for layer in &self.layers {
             let world = layer.world_matrices(t);
@@ -749,7 +770,7 @@ impl Scene {
             dynamic,
             self.lights(t),
             self.camera_at(t, aspect),
-            &self.materials,
+            &self.surfaces(),
         );
         let timings = EvaluateTimings {
             animation,

@@ -31,6 +31,13 @@
 //! (tested: a superset, at most 1 % larger; on the test scenes the same strata or one more
 //! in twenty thousand).
 //!
+//! Alpha cut-outs (glTF `MASK`, and `BLEND` rendered as one) are not seen here: both
+//! implementations flag the strata a dynamic triangle covers as if the whole triangle were
+//! opaque. That is conservative and changes no pixel: the flags only choose which strata are
+//! re-traced, a stratum a cut-out part covers is at worst re-traced needlessly (with the
+//! alpha test, which the ray tracer applies to every ray), and a stratum no dynamic triangle
+//! covers at all cannot see a dynamic prim through or around a cut-out either.
+//!
 //! The same machinery serves other hemisphere projections: [`Hemisphere`] is the cell
 //! layout and [`cover`] enumerates the cells a triangle may cover; a depth map for anchor
 //! bucketing on glossy surfaces (§5.1) would keep the nearest distance per cell instead of
@@ -569,6 +576,8 @@ pub(crate) mod testing {
                     uvs: [Vec2::ZERO; 3],
                     material: 0,
                     prim: p,
+                    masked: false,
+                    attributes: crate::geom::NO_ATTRIBUTES,
                 });
             }
         }

@@ -7,6 +7,7 @@ mod gpu;
 mod hardening;
 mod layout;
 mod lighting;
+mod materials;
 mod photons;
 mod python;
 mod scenes;
