@@ -75,6 +75,21 @@ pub fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
+/// Unit geometric normal (counter-clockwise front) and area of a triangle, computed in f64:
+/// the f32 cross product of edges longer than ~1e9 or shorter than ~1e-9 overflows or
+/// underflows when squared, which turned every triangle of a 1e10-scaled scene degenerate.
+/// A zero normal and area for a degenerate triangle.
+pub fn face_normal_area(t: &Triangle) -> (Vec3, f64) {
+    let v = |p: Vec3A| Vec3::from(p).as_dvec3();
+    let (a, b, c) = (v(t.v0), v(t.v1), v(t.v2));
+    let n = (b - a).cross(c - a);
+    let len = n.length();
+    if !(len > 0.0) || !len.is_finite() {
+        return (Vec3::ZERO, 0.0);
+    }
+    ((n / len).as_vec3(), 0.5 * len)
+}
+
 /// Helper for tests and tools: a triangle from three points.
 pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Triangle {
     Triangle {

@@ -5,6 +5,7 @@ mod gi;
 mod gpu;
 mod layout;
 mod lighting;
+mod offsets;
 mod photons;
 mod python;
 mod scenes;
