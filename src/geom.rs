@@ -1,5 +1,5 @@
 //! The vocabulary every stage shares: the static/dynamic split of prims (the paper's §3),
-//! world-space triangles with their shading data, and the directions sampled around a
+//! render-space triangles with their shading data, and the directions sampled around a
 //! normal.
 
 use std::f32::consts::PI;
@@ -28,7 +28,8 @@ pub struct TriangleShading {
     pub prim: u32,
 }
 
-/// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
+/// Render-space triangles (world space less the render origin, `Scene::render_origin`),
+/// front faces counter-clockwise (mirroring transforms are undone).
 #[derive(Debug, Clone, Default)]
 pub struct Geometry {
     pub triangles: Vec<Triangle>,

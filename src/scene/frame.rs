@@ -1,5 +1,6 @@
 //! The immutable, render-ready scene at one time (STYLE.md §2, Tungsten's
-//! `TraceableScene`): world-space triangles split into static and dynamic sets with their
+//! `TraceableScene`): render-space triangles (world space less the render origin,
+//! [`super::Scene::render_origin`]) split into static and dynamic sets with their
 //! BVHs, punctual lights, emissive triangles ready for sampling, and the camera.
 
 use std::sync::Arc;
@@ -158,7 +159,7 @@ impl Geometry {
     }
 }
 
-/// A pinhole or orthographic camera in world space.
+/// A pinhole or orthographic camera in render space.
 #[derive(Debug, Clone, Copy)]
 pub struct FrameCamera {
     pub origin: Vec3,
@@ -224,7 +225,7 @@ impl FrameCamera {
     }
 }
 
-/// A punctual light in world space. `intensity` is colour × intensity: radiant intensity
+/// A punctual light in render space. `intensity` is colour × intensity: radiant intensity
 /// (point, spot) or irradiance at normal incidence (directional).
 #[derive(Debug, Clone, Copy)]
 pub struct PunctualLight {
