@@ -65,17 +65,37 @@ pub fn seeds(root: &Path, scenes: &Path) -> Vec<Seed> {
             });
         }
     };
-    add("room.gltf", Kind::Gltf, root.join("examples/room/room.gltf"));
-    add("room-job.json", Kind::Job, root.join("examples/room/job.json"));
+    add(
+        "room.gltf",
+        Kind::Gltf,
+        root.join("examples/room/room.gltf"),
+    );
+    add(
+        "room-job.json",
+        Kind::Job,
+        root.join("examples/room/job.json"),
+    );
     for (name, kind, rel) in [
         ("cubes.glb", Kind::Glb, "bevy_Cubes/Cubes.glb"),
         ("extras.glb", Kind::Glb, "bevy_gltf_extras/gltf_extras.glb"),
         ("cornell.glb", Kind::Glb, "cornellbox_bevy/CornellBox.glb"),
-        ("triangle.gltf", Kind::Gltf, "AnimatedTriangle/AnimatedTriangle.gltf"),
+        (
+            "triangle.gltf",
+            Kind::Gltf,
+            "AnimatedTriangle/AnimatedTriangle.gltf",
+        ),
         ("box.gltf", Kind::Gltf, "BoxAnimated/BoxAnimated.gltf"),
         ("rigged.gltf", Kind::Gltf, "RiggedSimple/RiggedSimple.gltf"),
-        ("anims.gltf", Kind::Gltf, "blenderio_03_all_animations/03_all_animations.gltf"),
-        ("nla.gltf", Kind::Gltf, "blenderio_07_nla-anim/07_nla-anim.gltf"),
+        (
+            "anims.gltf",
+            Kind::Gltf,
+            "blenderio_03_all_animations/03_all_animations.gltf",
+        ),
+        (
+            "nla.gltf",
+            Kind::Gltf,
+            "blenderio_07_nla-anim/07_nla-anim.gltf",
+        ),
     ] {
         add(name, kind, scenes.join(rel));
     }
@@ -83,10 +103,39 @@ pub fn seeds(root: &Path, scenes: &Path) -> Vec<Seed> {
 }
 
 const INTERESTING: &[&str] = &[
-    "0", "-1", "1", "2", "3", "255", "65535", "4294967295", "2147483648", "4611686018427387904",
-    "-2147483649", "1e30", "-1e30", "1e-45", "0.5", "\"\"", "\"x\"", "null", "true", "[]",
-    "{}", "[0,0,0]", "[1e38,1e38,1e38]", "[[[[[[[[[[[[[[[[1]]]]]]]]]]]]]]]]", "\"nodes[0]\"",
-    "\"../../etc/passwd\"", "\"/dev/zero\"", "5126", "5125", "5123", "5121", "5120", "34962",
+    "0",
+    "-1",
+    "1",
+    "2",
+    "3",
+    "255",
+    "65535",
+    "4294967295",
+    "2147483648",
+    "4611686018427387904",
+    "-2147483649",
+    "1e30",
+    "-1e30",
+    "1e-45",
+    "0.5",
+    "\"\"",
+    "\"x\"",
+    "null",
+    "true",
+    "[]",
+    "{}",
+    "[0,0,0]",
+    "[1e38,1e38,1e38]",
+    "[[[[[[[[[[[[[[[[1]]]]]]]]]]]]]]]]",
+    "\"nodes[0]\"",
+    "\"../../etc/passwd\"",
+    "\"/dev/zero\"",
+    "5126",
+    "5125",
+    "5123",
+    "5121",
+    "5120",
+    "34962",
 ];
 
 /// Mutates `seed` once or a few times.
@@ -346,7 +395,12 @@ fn main() {
     while next < total {
         let to = (next + batch).min(total);
         let mut child = Command::new(&args[0])
-            .args(["--worker", &seed.to_string(), &next.to_string(), &to.to_string()])
+            .args([
+                "--worker",
+                &seed.to_string(),
+                &next.to_string(),
+                &to.to_string(),
+            ])
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -355,7 +409,10 @@ fn main() {
         let (tx, rx) = std::sync::mpsc::channel::<String>();
         std::thread::spawn(move || {
             use std::io::BufRead;
-            for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
                 if tx.send(line).is_err() {
                     break;
                 }

@@ -6,8 +6,19 @@
 //! says which set it came from: the anchor method (paper §3.2, Pseudocode 2) re-traces only
 //! strata whose rays meet dynamic geometry.
 //!
-//! Ray offsets are relative to the magnitude of the coordinates involved (float error of the
-//! intersection grows with them), so they behave the same at any scene scale.
+//! Ray offsets come from floating-point error bounds, as in pbrt-v4 (Pharr, Jakob &
+//! Humphreys, "Physically Based Rendering", 4th ed., §6.8): a hit point is interpolated from
+//! its barycentrics with a per-component bound on its error ([`hit_point`]), and rays leave
+//! from just beyond that bound along the geometric normal ([`offset_ray_origin`]). The bound
+//! follows each coordinate's own magnitude, so offsets hold from 1e-9 to 1e9 in scale and
+//! stay tiny on an axis-aligned ground of any size (the former fixed 2^-17 of the largest
+//! coordinate lifted rays 7.6 units off a ±1e6 ground, over every small object's shadow).
+//!
+//! The other half of pbrt-v4's scheme is the intersection test's own error: a hit whose `t`
+//! is within the rounding error of the f32 test (§6.8.7's conservative `t > δt`) is not
+//! dropped, as pbrt does, but decided again in f64 ([`ShearedRay::intersect`]). Dropping it
+//! loses true hits within ~γ·|v| of large triangles (half a unit near a ±1e6 ground at
+//! grazing angles); in f64 the undecided band shrinks by 2^29.
 //!
 //! Triangles are intersected with the watertight test of Woop, Benthin & Wald, "Watertight
 //! Ray/Triangle Intersection" (JCGT 2013), as in pbrt-v3: obvhs's Möller–Trumbore test lets
@@ -25,10 +36,27 @@ use obvhs::triangle::Triangle;
 
 use crate::geom::{Geometry, Motion};
 
-/// Relative offset of ray origins from surfaces: 2^-17 of the largest vertex coordinate of
-/// the triangle left behind (a few ulps of f32's 2^-24 relative precision, times margin for
-/// the intersection's own error).
-pub const OFFSET_SCALE: f32 = 1.0 / 131_072.0;
+/// Relative padding of each triangle's bounding box: 2^-17 of its largest coordinate (only
+/// the BVH's boxes; ray offsets come from [`hit_point`]'s error bounds).
+const BOX_PAD: f32 = 1.0 / 131_072.0;
+
+/// Shadow rays towards a sampled point of a surface stop this fraction short (pbrt-v4's
+/// `ShadowEpsilon`): room for the rounding of the test's `t` beyond the target's own error
+/// bound, at any scale.
+pub const SHADOW_EPSILON: f32 = 1e-4;
+
+/// γ(n) = nε / (1 − nε) with ε = 2^-24, f32's unit roundoff (pbrt-v4 eq. 6.36): bounds the
+/// relative error that n successive f32 roundings can accumulate.
+pub fn gamma(n: u32) -> f32 {
+    let ne = n as f32 * (0.5 * f32::EPSILON);
+    ne / (1.0 - ne)
+}
+
+/// γ(n) for f64 arithmetic (ε = 2^-53).
+pub fn gamma64(n: u32) -> f64 {
+    let ne = n as f64 * (0.5 * f64::EPSILON);
+    ne / (1.0 - ne)
+}
 
 /// A triangle whose bounding box is padded by a relative epsilon. Axis-aligned triangles
 /// (walls, floors) have boxes of zero thickness, which the slab test of a ray travelling
@@ -44,7 +72,7 @@ impl obvhs::Boundable for PaddedTriangle {
             .max(b.max.abs())
             .max_element()
             .max(f32::MIN_POSITIVE)
-            * OFFSET_SCALE;
+            * BOX_PAD;
         Aabb {
             min: b.min - Vec3A::splat(pad),
             max: b.max + Vec3A::splat(pad),
@@ -84,6 +112,7 @@ impl StaticBvh {
 #[derive(Debug, Clone, Copy)]
 pub struct ShearedRay {
     origin: Vec3A,
+    dir: Vec3,
     k: [usize; 3],
     shear: Vec3A,
 }
@@ -103,36 +132,28 @@ impl ShearedRay {
         let d = [dir[kx], dir[ky], dir[kz]];
         ShearedRay {
             origin: origin.into(),
+            dir,
             k: [kx, ky, kz],
             shear: Vec3A::new(-d[0] / d[2], -d[1] / d[2], 1.0 / d[2]),
         }
     }
 
     /// Distance to `tri` along the ray within `(0, tmax]`, or infinity.
+    ///
+    /// Inside or outside is decided by the f32 edge functions alone (that is what makes the
+    /// test watertight). `t` is trusted when it exceeds its own error bound δt (pbrt-v4
+    /// §6.8.7, `IntersectTriangle`); a `t` within ±δt of zero — a ray leaving the surface it
+    /// starts on, or a true hit very close to its origin — is decided again in f64
+    /// ([`Self::plane_t64`]) instead of being dropped.
     #[inline]
     pub fn intersect(&self, tri: &Triangle, tmax: f32) -> f32 {
-        match self.intersect_scaled(tri, tmax) {
-            Some((t_scaled, det, _)) => t_scaled / det,
-            None => f32::INFINITY,
-        }
+        self.intersect_barycentric(tri, tmax).0
     }
 
     /// [`ShearedRay::intersect`] with the hit's barycentrics (weights of `v1` and `v2`), which
     /// the alpha test of masked triangles needs.
     #[inline]
     pub fn intersect_barycentric(&self, tri: &Triangle, tmax: f32) -> (f32, Vec2) {
-        match self.intersect_scaled(tri, tmax) {
-            Some((t_scaled, det, e)) => (t_scaled / det, e / det),
-            None => (f32::INFINITY, Vec2::ZERO),
-        }
-    }
-
-    /// The watertight test proper: for a hit within `(0, tmax]`, the distance times the
-    /// determinant, the determinant, and the edge functions of `v1` and `v2` (barycentrics
-    /// times the determinant). The division is left to the caller.
-    #[inline]
-    fn intersect_scaled(&self, tri: &Triangle, tmax: f32) -> Option<(f32, f32, Vec2)> {
-        const MISS: Option<(f32, f32, Vec2)> = None;
         let [kx, ky, kz] = self.k;
         let s = self.shear;
         let tr = |v: Vec3A| {
@@ -154,20 +175,74 @@ impl ShearedRay {
             e2 = f(p0, p1);
         }
         if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
-            return MISS;
+            return (f32::INFINITY, Vec2::ZERO);
         }
         let det = e0 + e1 + e2;
         if det == 0.0 {
-            return MISS;
+            return (f32::INFINITY, Vec2::ZERO);
         }
-        let t_scaled = e0 * p0.2 + e1 * p1.2 + e2 * p2.2;
-        if det < 0.0 && (t_scaled >= 0.0 || t_scaled < tmax * det) {
-            return MISS;
+        // Barycentrics first, then t: Σ e_i·z_i would be a cube of the coordinates, which
+        // overflows f32 beyond ~1e12 and underflows below ~1e-13; this form only squares them.
+        let inv_det = 1.0 / det;
+        let (b0, b1, b2) = (e0 * inv_det, e1 * inv_det, e2 * inv_det);
+        let t = b0 * p0.2 + b1 * p1.2 + b2 * p2.2;
+        if !(t <= tmax) {
+            return (f32::INFINITY, Vec2::ZERO);
         }
-        if det > 0.0 && (t_scaled <= 0.0 || t_scaled > tmax * det) {
-            return MISS;
+        // δt, pbrt-v4's bound on the error of `t` (§6.8.7), with every product of three
+        // coordinates divided by det first (same range argument), and γ(5) for the two extra
+        // roundings of the divisions.
+        let max_z = p0.2.abs().max(p1.2.abs()).max(p2.2.abs());
+        let max_x = p0.0.abs().max(p1.0.abs()).max(p2.0.abs());
+        let max_y = p0.1.abs().max(p1.1.abs()).max(p2.1.abs());
+        let delta_z = gamma(3) * max_z;
+        let delta_x = gamma(5) * (max_x + max_z);
+        let delta_y = gamma(5) * (max_y + max_z);
+        let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
+        let max_b = b0.abs().max(b1.abs()).max(b2.abs());
+        let delta_t =
+            3.0 * (gamma(5) * max_b * max_z + delta_e * inv_det.abs() * max_z + delta_z * max_b);
+        if t > delta_t {
+            return (t, Vec2::new(b1, b2));
         }
-        Some((t_scaled, det, Vec2::new(e1, e2)))
+        if t < -delta_t {
+            return (f32::INFINITY, Vec2::ZERO);
+        }
+        match self.plane_t64(tri) {
+            // The smallest positive f32 if the f64 distance rounds to zero.
+            Some(t64) if t64 <= tmax as f64 => {
+                ((t64 as f32).max(f32::from_bits(1)), Vec2::new(b1, b2))
+            }
+            _ => (f32::INFINITY, Vec2::ZERO),
+        }
+    }
+
+    /// Where the ray's line meets the plane of `tri`, solved in f64 from the exact f32
+    /// inputs, if that `t` is positive beyond its own (f64) error bound; `None` otherwise
+    /// (behind the origin, at it within rounding, or a ray in the plane).
+    fn plane_t64(&self, tri: &Triangle) -> Option<f64> {
+        let o = Vec3::from(self.origin).as_dvec3();
+        let d = self.dir.as_dvec3();
+        let v = |p: Vec3A| Vec3::from(p).as_dvec3();
+        let (v0, v1, v2) = (v(tri.v0), v(tri.v1), v(tri.v2));
+        let (a, b, w) = (v1 - v0, v2 - v0, v0 - o);
+        let n = a.cross(b);
+        let num = n.dot(w);
+        let den = n.dot(d);
+        if den == 0.0 || !den.is_finite() {
+            return None;
+        }
+        let t = num / den;
+        // First-order bound: each product of differences of f32 values carries a few f64
+        // roundings; |a|×|b| bounds the normal's error even where the cross product cancels.
+        let (aa, ba) = (a.abs(), b.abs());
+        let n_abs = glam::DVec3::new(
+            aa.y * ba.z + aa.z * ba.y,
+            aa.z * ba.x + aa.x * ba.z,
+            aa.x * ba.y + aa.y * ba.x,
+        );
+        let err = gamma64(16) * (n_abs.dot(w.abs()) + t.abs() * n_abs.dot(d.abs())) / den.abs();
+        (t > err && t.is_finite()).then_some(t)
     }
 }
 
@@ -175,12 +250,14 @@ impl ShearedRay {
 /// infinity when the ray misses it or passes through a cut-out (glTF alpha `MASK`) part of it.
 #[inline]
 fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
-    match sr.intersect_scaled(&g.triangles[i], tmax) {
-        None => f32::INFINITY,
-        // Opaque triangles: one flag read, no barycentrics.
-        Some((t_scaled, det, _)) if !g.shading[i].masked => t_scaled / det,
-        Some((t_scaled, det, e)) if g.alpha_passes(i, e / det) => t_scaled / det,
-        Some(_) => f32::INFINITY,
+    let tri = &g.triangles[i];
+    // Opaque triangles: one flag read, no alpha look-up.
+    if !g.shading[i].masked {
+        return sr.intersect(tri, tmax);
+    }
+    match sr.intersect_barycentric(tri, tmax) {
+        (t, b) if t.is_finite() && g.alpha_passes(i, b) => t,
+        _ => f32::INFINITY,
     }
 }
 
@@ -311,10 +388,103 @@ pub fn barycentric(t: &Triangle, p: Vec3) -> Vec2 {
     Vec2::new(b1, b2).clamp(Vec2::ZERO, Vec2::ONE)
 }
 
-/// Distance to move a ray origin off triangle `t` along its normal (see the module doc).
-pub fn offset_of(t: &Triangle) -> f32 {
-    let m = t.v0.abs().max(t.v1.abs()).max(t.v2.abs()).max_element();
-    m.max(f32::MIN_POSITIVE) * OFFSET_SCALE
+/// A point on a triangle and a per-component bound on its distance from the true point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HitPoint {
+    pub position: Vec3,
+    pub error: Vec3,
+    /// Barycentric weights of `v0`, `v1`, `v2` (non-negative, summing to 1).
+    pub b: Vec3,
+}
+
+/// The point where the ray `o + t·dir` meets `t`, interpolated from its barycentrics, with
+/// the bound on its error of pbrt-v4's `Triangle::InteractionFromIntersection`
+/// (γ(7)·Σ|b_i·p_i|, §6.8.5) — not `o + t·dir`, whose error grows with `t`.
+///
+/// The barycentrics and the interpolation are evaluated in f64 from the exact f32 vertices
+/// and rounded to f32 once: in f32, barycentrics of a ±1e6 triangle are off by ~γ·|v|,
+/// which puts the point 0.1 units away from where the ray met the ground (on the plane,
+/// so harmless for self-intersection, but visible in the lighting). The bound is then half
+/// an f32 ulp of the result plus f64's γ(7)·Σ|b_i·p_i|. `None` for a ray in the plane.
+pub fn hit_point(t: &Triangle, o: Vec3, dir: Vec3) -> Option<HitPoint> {
+    let v = |p: Vec3A| Vec3::from(p).as_dvec3();
+    let (v0, v1, v2) = (v(t.v0), v(t.v1), v(t.v2));
+    let (o, d) = (o.as_dvec3(), dir.as_dvec3());
+    // The watertight test's permutation and shear (Woop et al. 2013), in f64.
+    let a = d.abs();
+    let kz = if a.x > a.y {
+        if a.x > a.z { 0 } else { 2 }
+    } else if a.y > a.z {
+        1
+    } else {
+        2
+    };
+    let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+    let (sx, sy) = (-d[kx] / d[kz], -d[ky] / d[kz]);
+    let tr = |p: glam::DVec3| {
+        let q = p - o;
+        (q[kx] + sx * q[kz], q[ky] + sy * q[kz])
+    };
+    let (p0, p1, p2) = (tr(v0), tr(v1), tr(v2));
+    let e = glam::DVec3::new(
+        p1.0 * p2.1 - p1.1 * p2.0,
+        p2.0 * p0.1 - p2.1 * p0.0,
+        p0.0 * p1.1 - p0.1 * p1.0,
+    );
+    let det = e.x + e.y + e.z;
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    // The f32 test said inside; a point the f64 edges put a hair outside is clamped back
+    // onto the triangle.
+    let b = (e / det).max(glam::DVec3::ZERO);
+    let sum = b.x + b.y + b.z;
+    if !(sum > 0.0) {
+        return None;
+    }
+    let b = b / sum;
+    let (q0, q1, q2) = (v0 * b.x, v1 * b.y, v2 * b.z);
+    let p64 = q0 + q1 + q2;
+    let position = p64.as_vec3();
+    let interp = ((q0.abs() + q1.abs() + q2.abs()) * gamma64(7)).as_vec3();
+    // Half an ulp from the rounding to f32 (γ(1) covers it), and the f64 interpolation's
+    // own error rounded up.
+    let error = position.abs() * gamma(1) + interp * (1.0 + gamma(2));
+    Some(HitPoint {
+        position,
+        error,
+        b: b.as_vec3(),
+    })
+}
+
+/// The point of `t` at barycentrics `b` (weights of `v0`, `v1`, `v2`), interpolated in f32,
+/// and pbrt-v4's per-component bound on its error, γ(7)·(|b0·v0| + |b1·v1| + |b2·v2|)
+/// (§6.8.5): for points sampled on emitters.
+pub fn interpolate(t: &Triangle, b: Vec3) -> (Vec3, Vec3) {
+    let (q0, q1, q2) = (t.v0 * b.x, t.v1 * b.y, t.v2 * b.z);
+    (
+        Vec3::from(q0 + q1 + q2),
+        Vec3::from(q0.abs() + q1.abs() + q2.abs()) * gamma(7),
+    )
+}
+
+/// A ray origin for leaving point `p` (with per-component error bound `error`) of a surface
+/// with geometric normal `n` in direction `w` (pbrt-v4 §6.8.6, `OffsetRayOrigin`): moved
+/// along `n`, to the side `w` leaves by, until outside the error box (d = |n|·error), then
+/// rounded one more f32 step away from the surface per component.
+pub fn offset_ray_origin(p: Vec3, error: Vec3, n: Vec3, w: Vec3) -> Vec3 {
+    let d = n.abs().dot(error);
+    let offset = if w.dot(n) < 0.0 { -d * n } else { d * n };
+    let po = p + offset;
+    Vec3::from_array(std::array::from_fn(|i| {
+        if offset[i] > 0.0 {
+            po[i].next_up()
+        } else if offset[i] < 0.0 {
+            po[i].next_down()
+        } else {
+            po[i]
+        }
+    }))
 }
 
 #[cfg(test)]
@@ -479,26 +649,109 @@ mod tests {
         assert!((b - Vec2::new(0.25, 0.5)).length() < 1e-6);
     }
 
-    /// Offsets scale with the coordinates: a ray leaving a surface at 1e4 does not re-hit it.
+    /// Points on a tilted triangle — hit points ([`hit_point`]) and points interpolated in
+    /// f32 as emitter samples are ([`interpolate`]) — spawn rays ([`offset_ray_origin`]) to
+    /// either side, down to grazing angles, that never meet the triangle again: from 1e-9 to
+    /// 1e9 in scale and 1e6 from the origin. Without the offset (or with it shrunk by 1e30)
+    /// the interpolated points, whose error is several ulps, re-hit.
     #[test]
     fn offsets_escape_their_surface_at_any_scale() {
-        for scale in [1e-3f32, 1.0, 1e4] {
+        let far = Vec3::new(1e6, -1e6, 1e6);
+        let cases = [
+            (1e-9f32, Vec3::ZERO),
+            (1e-3, Vec3::ZERO),
+            (1.0, Vec3::ZERO),
+            (1e4, Vec3::ZERO),
+            (1e9, Vec3::ZERO),
+            (1.0, far),
+            (1e-3, Vec3::new(1e3, 0.0, 0.0)),
+        ];
+        for (scale, at) in cases {
+            let q = |v: Vec3| v * scale + at;
             let t = triangle(
-                Vec3::new(-1.0, 0.0, -1.0) * scale,
-                Vec3::new(1.0, 0.0, -1.0) * scale,
-                Vec3::new(0.0, 0.0, 1.0) * scale + Vec3::new(7.0 * scale, 0.0, 0.0),
+                q(Vec3::new(-1.0, -0.3, -1.0)),
+                q(Vec3::new(1.0, 0.2, -1.0)),
+                q(Vec3::new(0.1, 0.05, 1.0)),
             );
-            let g = geometry(&[t]);
-            let e = Geometry::default();
+            let (g, e) = (geometry(&[t]), Geometry::default());
             let a = Accel::build(&g, &e);
-            for i in 0..200 {
-                let x = (i as f32 / 200.0 - 0.5) * 0.3 * scale;
-                let p = Vec3::new(x + 0.3 * scale, 0.0, 0.1 * scale);
-                let o = p + Vec3::Y * offset_of(&t);
-                let dir = Vec3::new(0.3, 1.0, -0.2).normalize();
+            let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
+            let mut points = 0;
+            for i in 0..300 {
+                let (u, v) = (
+                    (i as f32 * 0.618_034).fract(),
+                    (i as f32 * 0.414_214).fract(),
+                );
+                let side = if i % 2 == 0 { 1.0 } else { -1.0 };
+                // A hit point, from a ray arriving from `side`.
+                let o = q(Vec3::new(0.3, 3.0, 0.2) * side);
+                let dir = (q(Vec3::new(u - 0.5, 0.0, v - 0.5) * 0.8) - o).normalize();
+                let mut starts = Vec::new();
+                if a.closest(&g, &e, o, dir, f32::INFINITY).is_some() {
+                    let hp = hit_point(&t, o, dir).unwrap();
+                    starts.push((hp.position, hp.error));
+                }
+                // An emitter-style sample.
+                let su = u.sqrt();
+                starts.push(interpolate(&t, Vec3::new(1.0 - su, su * (1.0 - v), su * v)));
+                for (p, error) in starts {
+                    points += 1;
+                    let ng = n * side;
+                    let (tangent, _) = crate::geom::basis(ng);
+                    for w in [
+                        ng,
+                        (ng + 3.0 * tangent).normalize(),
+                        (0.01 * ng + tangent).normalize(),
+                        (1e-4 * ng - tangent).normalize(),
+                    ] {
+                        for w in [w, -w] {
+                            let po = offset_ray_origin(p, error, ng, w);
+                            assert!(
+                                a.closest(&g, &e, po, w, f32::INFINITY).is_none(),
+                                "scale {scale} at {at}: point {i} ({p}) leaving along {w} re-hits"
+                            );
+                        }
+                    }
+                }
+            }
+            assert!(points > 500, "scale {scale} at {at}: {points} points");
+        }
+    }
+
+    /// Near the middle of a ±1e6 ground the offset is the hit's own rounding error, far
+    /// below the former 2^-17 of the largest coordinate (7.6 units): rays leave the ground,
+    /// and a true hit on the ground 1e-3 away from a ray's origin is found.
+    #[test]
+    fn offsets_on_a_huge_ground_are_tiny_and_near_hits_survive() {
+        for y in [0.0f32, 0.5, -3.0] {
+            let c = |x: f32, z: f32| Vec3::new(x, y, z);
+            let tris = [
+                triangle(c(-1e6, -1e6), c(-1e6, 1e6), c(1e6, 1e6)),
+                triangle(c(-1e6, -1e6), c(1e6, 1e6), c(1e6, -1e6)),
+            ];
+            let (g, e) = (geometry(&tris), Geometry::default());
+            let a = Accel::build(&g, &e);
+            for i in 0..100 {
+                let x = (i as f32 * 0.618_034).fract() * 4.0 - 2.0;
+                let o = Vec3::new(0.2, y + 2.0, 0.1);
+                let dir = (c(x, -x * 0.7) - o).normalize();
+                let h = a.closest(&g, &e, o, dir, f32::INFINITY).unwrap();
+                let hp = hit_point(&tris[h.triangle as usize], o, dir).unwrap();
+                let po = offset_ray_origin(hp.position, hp.error, Vec3::Y, Vec3::Y);
+                let off = (po - hp.position).length();
+                assert!(off < 1e-5, "y {y}: offset {off}");
+                assert!(po.y >= y);
+                let w = (Vec3::new(0.0, y + 2.0, 0.0) - po).normalize();
+                assert!(!a.occluded(&g, &e, po, w, 1.9), "y {y}: sample {i}");
+                // A grazing ray 1e-3 above the ground, going down at 1/100: its true hit
+                // 0.1 away is well inside the f32 test's own error band there (~0.5).
+                let o = c(x, -x * 0.7) + Vec3::Y * 1e-3;
+                let dir = Vec3::new(1.0, -0.01, 0.3).normalize();
+                let h = a.closest(&g, &e, o, dir, f32::INFINITY);
+                let want = 1e-3 / 0.01 * Vec3::new(1.0, -0.01, 0.3).length();
                 assert!(
-                    a.closest(&g, &e, o, dir, f32::INFINITY).is_none(),
-                    "scale {scale}, sample {i}"
+                    h.is_some_and(|h| (h.t - want).abs() < 1e-3 * want),
+                    "y {y}: grazing hit {h:?}, want t = {want}"
                 );
             }
         }

@@ -1,5 +1,5 @@
 //! The vocabulary every stage shares: the static/dynamic split of prims (the paper's §3),
-//! world-space triangles with their shading data, and the directions sampled around a
+//! render-space triangles with their shading data, and the directions sampled around a
 //! normal.
 
 use std::f32::consts::PI;
@@ -58,7 +58,8 @@ pub trait AlphaTest: Send + Sync + std::fmt::Debug {
     fn opaque(&self, g: &Geometry, triangle: usize, b: Vec2) -> bool;
 }
 
-/// World-space triangles, front faces counter-clockwise (mirroring transforms are undone).
+/// Render-space triangles (world space less the render origin, `Scene::render_origin`),
+/// front faces counter-clockwise (mirroring transforms are undone).
 #[derive(Debug, Clone, Default)]
 pub struct Geometry {
     pub triangles: Vec<Triangle>,
@@ -126,6 +127,21 @@ pub fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
     let r = (1.0 - z * z).max(0.0).sqrt();
     let phi = 2.0 * PI * u2;
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// Unit geometric normal (counter-clockwise front) and area of a triangle, computed in f64:
+/// the f32 cross product of edges longer than ~1e9 or shorter than ~1e-9 overflows or
+/// underflows when squared, which turned every triangle of a 1e10-scaled scene degenerate.
+/// A zero normal and area for a degenerate triangle.
+pub fn face_normal_area(t: &Triangle) -> (Vec3, f64) {
+    let v = |p: Vec3A| Vec3::from(p).as_dvec3();
+    let (a, b, c) = (v(t.v0), v(t.v1), v(t.v2));
+    let n = (b - a).cross(c - a);
+    let len = n.length();
+    if !(len > 0.0) || !len.is_finite() {
+        return (Vec3::ZERO, 0.0);
+    }
+    ((n / len).as_vec3(), 0.5 * len)
 }
 
 /// Helper for tests and tools: a triangle from three points.

@@ -8,8 +8,10 @@
 
 use glam::{Vec2, Vec3, Vec4};
 
-use crate::accel::{Hit, barycentric, offset_of};
-use crate::geom::Geometry;
+use crate::accel::{
+    Hit, SHADOW_EPSILON, barycentric, gamma, hit_point, interpolate, offset_ray_origin,
+};
+use crate::geom::{Geometry, face_normal_area};
 use crate::sampling::Sampler;
 use crate::scene::frame::uniform_barycentric;
 use crate::scene::material::NormalMap;
@@ -35,8 +37,9 @@ pub struct SurfacePoint {
     pub uv: Vec2,
     /// Linear RGBA vertex colour (`COLOR_0`) at the hit; white without one.
     pub color: Vec4,
-    /// Distance to move ray origins off this surface.
-    pub offset: f32,
+    /// Per-component bound on the error of `position` (pbrt-v4 §6.8.5): rays leave from
+    /// beyond it ([`Self::spawn`]).
+    pub error: Vec3,
     pub material: u32,
     /// True if the ray hit the front (counter-clockwise) face.
     pub front: bool,
@@ -48,10 +51,20 @@ impl SurfacePoint {
         let g = frame.geometry(hit.motion);
         let tri = &g.triangles[hit.triangle as usize];
         let sh = &g.shading[hit.triangle as usize];
-        let position = origin + dir * hit.t;
-        let b = barycentric(tri, position);
-        let w = 1.0 - b.x - b.y;
-        let n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
+        // The point from its barycentrics with an error bound; a ray in the triangle's
+        // plane (no barycentrics) falls back to `origin + t·dir` with the bound of its
+        // three roundings.
+        let hp = hit_point(tri, origin, dir).unwrap_or_else(|| {
+            let position = origin + dir * hit.t;
+            let b = barycentric(tri, position);
+            crate::accel::HitPoint {
+                position,
+                error: (origin.abs() + (dir * hit.t).abs()) * gamma(3),
+                b: Vec3::new(1.0 - b.x - b.y, b.x, b.y),
+            }
+        });
+        let (w, b) = (hp.b.x, Vec2::new(hp.b.y, hp.b.z));
+        let (n, _) = face_normal_area(tri);
         let front = n.dot(dir) < 0.0;
         let ng = if front { n } else { -n };
         let nv =
@@ -79,21 +92,39 @@ impl SurfacePoint {
             _ => orient(nv),
         };
         SurfacePoint {
-            position,
+            position: hp.position,
             ng,
             ns,
             uv,
             color,
-            offset: offset_of(tri),
+            error: hp.error,
             material: sh.material,
             front,
             hit,
         }
     }
 
-    /// Origin for rays leaving on the ray's side of the surface.
+    /// Origin for rays leaving on the ray's side of the surface (pbrt-v4's
+    /// `OffsetRayOrigin` along the geometric normal).
     pub fn spawn(&self) -> Vec3 {
-        self.position + self.ng * self.offset
+        offset_ray_origin(self.position, self.error, self.ng, self.ng)
+    }
+
+    /// A shadow ray from here to `target`, a point with error bound `target_error` on a
+    /// surface with geometric normal `target_n` (pbrt-v4's `SpawnRayTo`): both ends leave
+    /// their surface's error box towards each other, and the ray stops [`SHADOW_EPSILON`]
+    /// short of the far end. `None` if the ends coincide.
+    pub fn spawn_to(&self, target: Vec3, target_error: Vec3, target_n: Vec3) -> Option<Segment> {
+        let origin = offset_ray_origin(self.position, self.error, self.ng, target - self.position);
+        let end = offset_ray_origin(target, target_error, target_n, origin - target);
+        let d = end - origin;
+        let length = d.length();
+        (length > 0.0 && length.is_finite()).then(|| Segment {
+            origin,
+            dir: d / length,
+            length,
+            tmax: length * (1.0 - SHADOW_EPSILON),
+        })
     }
 
     /// Lambertian albedo: base colour factor × texture × vertex colour.
@@ -166,6 +197,18 @@ fn normal_mapped(
     let bt = nv.cross(t) * sign;
     let n = (t * n_ts.x + bt * n_ts.y + nv * n_ts.z).normalize_or_zero();
     (n != Vec3::ZERO && n.is_finite()).then_some(n)
+}
+
+/// A shadow ray between two surface points ([`SurfacePoint::spawn_to`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Segment {
+    pub origin: Vec3,
+    /// Unit direction.
+    pub dir: Vec3,
+    /// Distance between the two offset ends.
+    pub length: f32,
+    /// Where the occlusion test stops.
+    pub tmax: f32,
 }
 
 /// The surface the ray `o + t·d` meets first, if any.
@@ -260,7 +303,6 @@ pub fn direct_irradiance(
     if frame.emitters.list.is_empty() {
         return e;
     }
-    let o = x.spawn();
     let mut area = Vec3::ZERO;
     for j in 0..n {
         let i = index * n + j;
@@ -270,19 +312,21 @@ pub fn direct_irradiance(
         let em = &frame.emitters.list[k];
         let g = frame.geometry(em.motion);
         let tri = &g.triangles[em.triangle as usize];
-        // Uniform point on the triangle (Shirley's square-root parameterisation).
+        // Uniform point on the triangle (Shirley's square-root parameterisation), with the
+        // error bound of its interpolation (pbrt-v4 §6.8.5).
         let [u1, u2] = sampler.get2(i, dim + 1);
         let su = u1.sqrt();
-        let y = Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
+        let (y, y_error) = interpolate(tri, Vec3::new(1.0 - su, su * (1.0 - u2), su * u2));
         let bc = uniform_barycentric(u1, u2);
-        let ny = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
-        let d = y - o;
-        let r2 = d.length_squared();
+        let (ny, _) = face_normal_area(tri);
+        let Some(seg) = x.spawn_to(y, y_error, ny) else {
+            continue;
+        };
+        let (r, wi) = (seg.length, seg.dir);
+        let r2 = r * r;
         if !(r2 > 0.0) {
             continue;
         }
-        let r = r2.sqrt();
-        let wi = d / r;
         let cos_x = x.ns.dot(wi);
         let cos_y = -ny.dot(wi);
         let cos_y = if em.double_sided { cos_y.abs() } else { cos_y };
@@ -290,12 +334,13 @@ pub fn direct_irradiance(
             continue;
         }
         *shadow_rays += 1;
-        let tmax = r - 2.0 * offset_of(tri);
-        if tmax > 0.0
-            && frame
-                .accel
-                .occluded(&frame.static_geometry, &frame.dynamic_geometry, o, wi, tmax)
-        {
+        if frame.accel.occluded(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            seg.origin,
+            wi,
+            seg.tmax,
+        ) {
             continue;
         }
         // E = L_e cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that

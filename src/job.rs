@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use clap::ValueEnum;
-use glam::{EulerRot, Mat4, Quat, Vec3};
+use glam::{DMat4, DQuat, DVec3, EulerRot, Vec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -89,10 +89,10 @@ pub struct LayerFile {
 #[serde(deny_unknown_fields)]
 pub struct TransformFile {
     #[serde(default)]
-    pub translation: Option<[f32; 3]>,
+    pub translation: Option<[f64; 3]>,
     /// Rotation as XYZ Euler angles in degrees.
     #[serde(default)]
-    pub rotation_deg: Option<[f32; 3]>,
+    pub rotation_deg: Option<[f64; 3]>,
     /// Uniform scale (a number) or per-axis scale (three numbers).
     #[serde(default)]
     pub scale: Option<Scale>,
@@ -101,30 +101,32 @@ pub struct TransformFile {
 #[derive(Debug, Clone, Copy, Deserialize, JsonSchema)]
 #[serde(untagged)]
 pub enum Scale {
-    Uniform(f32),
-    Axes([f32; 3]),
+    Uniform(f64),
+    Axes([f64; 3]),
 }
 
 impl TransformFile {
-    pub fn matrix(&self) -> Mat4 {
-        let t = self.translation.map(Vec3::from).unwrap_or(Vec3::ZERO);
+    /// In f64, like every world transform (a layer placed 1e6 from the origin keeps its
+    /// sub-millimetre detail until the render-space origin is subtracted).
+    pub fn matrix(&self) -> DMat4 {
+        let t = self.translation.map(DVec3::from).unwrap_or(DVec3::ZERO);
         let r = self
             .rotation_deg
             .map(|[x, y, z]| {
-                Quat::from_euler(
+                DQuat::from_euler(
                     EulerRot::XYZ,
                     x.to_radians(),
                     y.to_radians(),
                     z.to_radians(),
                 )
             })
-            .unwrap_or(Quat::IDENTITY);
+            .unwrap_or(DQuat::IDENTITY);
         let s = match self.scale {
-            None => Vec3::ONE,
-            Some(Scale::Uniform(s)) => Vec3::splat(s),
-            Some(Scale::Axes(a)) => Vec3::from(a),
+            None => DVec3::ONE,
+            Some(Scale::Uniform(s)) => DVec3::splat(s),
+            Some(Scale::Axes(a)) => DVec3::from(a),
         };
-        Mat4::from_scale_rotation_translation(s, r, t)
+        DMat4::from_scale_rotation_translation(s, r, t)
     }
 }
 
@@ -136,8 +138,8 @@ pub enum CameraFile {
     Node { node: String },
     /// A pinhole camera.
     LookAt {
-        position: [f32; 3],
-        look_at: [f32; 3],
+        position: [f64; 3],
+        look_at: [f64; 3],
         #[serde(default = "default_up")]
         up: [f32; 3],
         /// Vertical field of view in degrees, in (0, 180).
@@ -611,7 +613,7 @@ fn layers(path: &Path, base: &Path, scene: &[LayerFile]) -> Result<Vec<LayerDesc
         .enumerate()
         .map(|(i, l)| {
             let m = l.transform.matrix();
-            if !m.is_finite() || m.determinant().abs() < 1e-30 {
+            if !m.is_finite() || !(m.determinant().abs() > 0.0) {
                 return Err(Error::input(
                     path,
                     format!("scene[{i}].transform"),
@@ -640,8 +642,8 @@ fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
             znear,
             zfar,
         } => (
-            Vec3::from(position),
-            Vec3::from(look_at),
+            DVec3::from(position),
+            DVec3::from(look_at),
             Vec3::from(up),
             yfov_deg,
             znear,
@@ -669,6 +671,7 @@ fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
     }
     if (look_at - position)
         .normalize()
+        .as_vec3()
         .cross(up.normalize_or_zero())
         .length()
         < 1e-6

@@ -6,6 +6,7 @@ use glam::Vec3;
 
 use super::importons::Importons;
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet};
+use crate::accel::{gamma, offset_ray_origin};
 use crate::interaction::{Materials, SurfacePoint};
 use crate::photon::PhotonMap;
 use crate::scene::FrameScene;
@@ -33,20 +34,22 @@ impl Attacher<'_> {
         if (a.albedo() - albedo).abs().max_element() > self.params.albedo_tolerance {
             return false;
         }
+        // The decoded position is off the anchor's surface by at most the quantiser's
+        // half step per axis (twice that for margin), plus the rounding of the hit it came
+        // from; the shadow ray runs between the two error boxes (pbrt-v4's `SpawnRayTo`),
+        // leaving the anchor on the side its normal faces.
         let p = a.position(&set.quantizer);
-        let target = p + a.normal() * sp.offset.max(set.quantizer.max_error() * 2.0);
-        let o = sp.spawn();
-        let d = target - o;
-        let dist = d.length();
-        if !(dist > 0.0) {
+        let p_error = 2.0 * set.quantizer.error() + p.abs() * gamma(7);
+        let target = offset_ray_origin(p, p_error, a.normal(), a.normal());
+        let Some(s) = sp.spawn_to(target, Vec3::ZERO, a.normal()) else {
             return true;
-        }
+        };
         !self.frame.accel.occluded(
             &self.frame.static_geometry,
             &self.frame.dynamic_geometry,
-            o,
-            d / dist,
-            dist,
+            s.origin,
+            s.dir,
+            s.tmax,
         )
     }
 

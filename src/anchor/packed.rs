@@ -56,6 +56,11 @@ impl Quantizer {
         self.lo + q * self.step
     }
 
+    /// Per-axis bound on the distance between a point and its decoded position.
+    pub fn error(&self) -> Vec3 {
+        0.5 * self.step
+    }
+
     /// Largest distance between a point and its decoded position.
     pub fn max_error(&self) -> f32 {
         0.5 * self.step.length()

@@ -89,8 +89,9 @@ pub struct Record {
     pub last_used: i32,
     /// Pixel footprint at creation, for clamping the radius when re-gathered.
     pub footprint: f32,
-    /// Ray-origin offset and geometric normal of the surface the record sits on.
-    pub offset: f32,
+    /// Error bound of the position (for ray offsets, pbrt-v4 §6.8) and geometric normal of
+    /// the surface the record sits on.
+    pub error: Vec3,
     pub ng: Vec3,
     pub strata: Vec<Stratum>,
     /// Fraction of the strata traced this frame (1 for brute force and new records).
@@ -167,7 +168,7 @@ pub fn finish_record(
         id,
         last_used: frame,
         footprint,
-        offset: sp.offset,
+        error: sp.error,
         ng: sp.ng,
         strata,
         reshot: 1.0,
@@ -207,7 +208,7 @@ impl Record {
             ns: self.normal,
             uv: glam::Vec2::ZERO,
             color: glam::Vec4::ONE,
-            offset: self.offset,
+            error: self.error,
             material: 0,
             front: true,
             hit: Hit {

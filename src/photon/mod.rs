@@ -30,9 +30,9 @@ use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use serde::{Deserialize, Serialize};
 
-use crate::accel::offset_of;
+use crate::accel::{interpolate, offset_ray_origin};
 use crate::color::luminance;
-use crate::geom::{basis, cosine_direction, uniform_sphere};
+use crate::geom::{basis, cosine_direction, face_normal_area, uniform_sphere};
 use crate::interaction::{Materials, SurfacePoint};
 use crate::sampling::Sampler;
 use crate::scene::{FrameScene, LightKind};
@@ -353,9 +353,9 @@ fn emit(
             let tri = &g.triangles[e.triangle as usize];
             let su = s.get(DIM_EMIT).sqrt();
             let u2 = s.get(DIM_EMIT + 1);
-            let y =
-                Vec3::from(tri.v0 * (1.0 - su) + tri.v1 * (su * (1.0 - u2)) + tri.v2 * (su * u2));
-            let mut n = Vec3::from((tri.v1 - tri.v0).cross(tri.v2 - tri.v0)).normalize_or_zero();
+            // The point and its interpolation error bound (pbrt-v4 §6.8.5).
+            let (y, y_error) = interpolate(tri, Vec3::new(1.0 - su, su * (1.0 - u2), su * u2));
+            let (mut n, _) = face_normal_area(tri);
             let mut u3 = s.get(DIM_EMIT + 2);
             let mut sides = 1.0;
             if e.double_sided {
@@ -371,7 +371,11 @@ fn emit(
             // The radiance where the photon leaves (an emissive texture read there): chosen
             // by the triangle's mean power, each photon carries its own point's.
             let l_e = frame.emitted_radiance(e, Vec2::new(su * (1.0 - u2), su * u2));
-            Some((y + n * offset_of(tri), d, PI * l_e * e.area * sides))
+            Some((
+                offset_ray_origin(y, y_error, n, d),
+                d,
+                PI * l_e * e.area * sides,
+            ))
         }
     }
 }

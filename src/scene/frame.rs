@@ -1,15 +1,19 @@
 //! The immutable, render-ready scene at one time (STYLE.md §2, Tungsten's
-//! `TraceableScene`): world-space triangles split into static and dynamic sets with their
+//! `TraceableScene`): render-space triangles (world space less the render origin,
+//! [`super::Scene::render_origin`]) split into static and dynamic sets with their
 //! BVHs, punctual lights, emissive triangles ready for sampling, and the camera.
 
 use std::sync::Arc;
 
-use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
+use glam::{DMat3, DMat4, DVec3, Vec2, Vec3, Vec4};
 
 use super::{Clip, Light, LightKind, Primitive, Projection, Surfaces};
 use crate::accel::{Accel, StaticBvh};
 use crate::color::luminance;
-use crate::geom::{Geometry, Motion, NO_ATTRIBUTES, Triangle, TriangleAttributes, TriangleShading};
+use crate::geom::{
+    Geometry, Motion, NO_ATTRIBUTES, Triangle, TriangleAttributes, TriangleShading,
+    face_normal_area,
+};
 
 /// Static geometry and its BVH: evaluated and built once per render, shared by every frame.
 #[derive(Clone)]
@@ -18,10 +22,20 @@ pub struct StaticSet {
     pub bvh: Arc<StaticBvh>,
     /// Bounding box of the static geometry (the unit box when there is none).
     pub bounds: (Vec3, Vec3),
+    /// The world point that is render space's origin ([`super::Scene::render_origin`]):
+    /// every position of a render — geometry, lights, camera, and what is kept across
+    /// frames — is relative to it.
+    pub origin: DVec3,
 }
 
 impl StaticSet {
+    /// A static set whose render space is world space.
     pub fn new(geometry: Geometry) -> Self {
+        Self::with_origin(geometry, DVec3::ZERO)
+    }
+
+    /// A static set of `geometry` already in the render space of `origin`.
+    pub fn with_origin(geometry: Geometry, origin: DVec3) -> Self {
         let bvh = Arc::new(StaticBvh::build(&geometry));
         let mut lo = Vec3::splat(f32::MAX);
         let mut hi = Vec3::splat(f32::MIN);
@@ -40,6 +54,7 @@ impl StaticSet {
             geometry: Arc::new(geometry),
             bvh,
             bounds,
+            origin,
         }
     }
 }
@@ -47,14 +62,17 @@ impl StaticSet {
 impl Geometry {
     /// Appends a primitive transformed by `world` — or, when skinned, by its `joints`
     /// matrices (glTF §3.7.3: the mesh node's own transform is then ignored) — after
-    /// applying morph `weights`.
+    /// applying morph `weights`, into render space: world positions are computed in f64 and
+    /// `origin` (the render-space origin, see [`StaticSet::origin`]) is subtracted before
+    /// they are rounded to f32.
     pub fn push_primitive(
         &mut self,
         p: &Primitive,
-        world: Mat4,
-        joints: Option<&[Mat4]>,
+        world: DMat4,
+        joints: Option<&[DMat4]>,
         weights: &[f32],
         prim: u32,
+        origin: DVec3,
     ) {
         let n = p.positions.len();
         let mut pos = p.positions.clone();
@@ -73,18 +91,18 @@ impl Geometry {
             }
         }
         // Per-vertex matrix: skinning blends joint matrices by weight.
-        let skin = |v: usize| -> Mat4 {
+        let skin = |v: usize| -> DMat4 {
             match joints {
                 Some(j) if v < p.joints.len() && v < p.weights.len() => {
-                    let mut m = Mat4::ZERO;
+                    let mut m = DMat4::ZERO;
                     for k in 0..4 {
                         let w = p.weights[v][k];
                         if w != 0.0 {
                             m += j
                                 .get(p.joints[v][k] as usize)
                                 .copied()
-                                .unwrap_or(Mat4::IDENTITY)
-                                * w;
+                                .unwrap_or(DMat4::IDENTITY)
+                                * w as f64;
                         }
                     }
                     m
@@ -92,22 +110,32 @@ impl Geometry {
                 _ => world,
             }
         };
+        let world_normals = DMat3::from_mat4(world).inverse().transpose();
         let mut wpos = Vec::with_capacity(n);
         let mut wnrm = Vec::with_capacity(n);
         let mut wtan = Vec::with_capacity(n);
         for v in 0..n {
             let m = if joints.is_some() { skin(v) } else { world };
-            wpos.push(m.transform_point3(pos[v]));
+            wpos.push((m.transform_point3(pos[v].as_dvec3()) - origin).as_vec3());
             if let Some(nrm) = &nrm {
-                let nm = Mat3::from_mat4(m).inverse().transpose();
-                wnrm.push((nm * nrm[v]).normalize_or_zero());
+                let nm = if joints.is_some() {
+                    DMat3::from_mat4(m).inverse().transpose()
+                } else {
+                    world_normals
+                };
+                wnrm.push((nm * nrm[v].as_dvec3()).normalize_or_zero().as_vec3());
             }
             if let Some(t) = p.tangents.as_ref().and_then(|t| t.get(v)) {
                 // Tangents are directions on the surface: transformed by the matrix itself;
                 // a mirroring matrix flips the bitangent's handedness.
-                let m3 = Mat3::from_mat4(m);
+                let m3 = DMat3::from_mat4(m);
                 let w = if m3.determinant() < 0.0 { -t.w } else { t.w };
-                wtan.push((m3 * t.truncate()).normalize_or_zero().extend(w));
+                wtan.push(
+                    (m3 * t.truncate().as_dvec3())
+                        .normalize_or_zero()
+                        .as_vec3()
+                        .extend(w),
+                );
             }
         }
         let mirrored = joints.is_none() && world.determinant() < 0.0;
@@ -117,11 +145,15 @@ impl Geometry {
                 idx.swap(1, 2);
             }
             let [a, b, c] = idx.map(|i| wpos[i]);
-            let ng = (b - a).cross(c - a);
-            if !(ng.length_squared() > 0.0) || !ng.is_finite() {
+            let tri = Triangle {
+                v0: a.into(),
+                v1: b.into(),
+                v2: c.into(),
+            };
+            let (ng, area) = face_normal_area(&tri);
+            if !(area > 0.0) || !a.is_finite() || !b.is_finite() || !c.is_finite() {
                 continue; // collapsed by a zero scale or a degenerate skin pose
             }
-            let ng = ng.normalize();
             let normals = idx.map(|i| match wnrm.get(i) {
                 Some(v) if v.length_squared() > 0.5 => *v,
                 _ => ng,
@@ -132,11 +164,7 @@ impl Geometry {
                     .and_then(|u| u.get(i).copied())
                     .unwrap_or(Vec2::ZERO)
             });
-            self.triangles.push(Triangle {
-                v0: a.into(),
-                v1: b.into(),
-                v2: c.into(),
-            });
+            self.triangles.push(tri);
             let attributes = if p.colors.is_some() || !wtan.is_empty() {
                 let color = |i: usize| {
                     p.colors
@@ -165,7 +193,7 @@ impl Geometry {
     }
 }
 
-/// A pinhole or orthographic camera in world space.
+/// A pinhole or orthographic camera in render space.
 #[derive(Debug, Clone, Copy)]
 pub struct FrameCamera {
     pub origin: Vec3,
@@ -188,14 +216,21 @@ pub struct CameraRay {
 }
 
 impl FrameCamera {
-    /// From a camera node's world matrix (scale removed: cameras look along −Z). The clip
-    /// depths are in the node's units, so they scale with the node's world scale as the
-    /// scene does.
-    pub fn from_matrix(world: Mat4, projection: Projection, clip: Clip, aspect: f32) -> Self {
+    /// From a camera node's world matrix (scale removed: cameras look along −Z), in the
+    /// render space whose origin is the world point `render_origin`. The clip depths are in
+    /// the node's units, so they scale with the node's world scale as the scene does.
+    pub fn from_matrix(
+        world: DMat4,
+        render_origin: DVec3,
+        projection: Projection,
+        clip: Clip,
+        aspect: f32,
+    ) -> Self {
         let (scale, rot, origin) = world.to_scale_rotation_translation();
-        let s = scale.abs().element_sum() / 3.0;
+        let rot = rot.as_quat();
+        let s = (scale.abs().element_sum() / 3.0) as f32;
         FrameCamera {
-            origin,
+            origin: (origin - render_origin).as_vec3(),
             right: rot * Vec3::X,
             up: rot * Vec3::Y,
             forward: rot * -Vec3::Z,
@@ -264,7 +299,7 @@ impl FrameCamera {
     }
 }
 
-/// A punctual light in world space. `intensity` is colour × intensity: radiant intensity
+/// A punctual light in render space. `intensity` is colour × intensity: radiant intensity
 /// (point, spot) or irradiance at normal incidence (directional).
 #[derive(Debug, Clone, Copy)]
 pub struct PunctualLight {
@@ -277,15 +312,17 @@ pub struct PunctualLight {
 }
 
 impl PunctualLight {
-    pub fn new(l: &Light, world: Mat4) -> Self {
+    /// The light of a node with world matrix `world`, in the render space whose origin is
+    /// the world point `origin`.
+    pub fn new(l: &Light, world: DMat4, origin: DVec3) -> Self {
         let (scale, rot, position) = world.to_scale_rotation_translation();
         PunctualLight {
             kind: l.kind,
-            position,
-            direction: (rot * -Vec3::Z).normalize(),
+            position: (position - origin).as_vec3(),
+            direction: (rot.as_quat() * -Vec3::Z).normalize(),
             intensity: l.color * l.intensity,
             // Range is in the light node's units.
-            range: l.range.map(|r| r * scale.abs().max_element()),
+            range: l.range.map(|r| r * scale.abs().max_element() as f32),
         }
     }
 }
@@ -357,15 +394,15 @@ impl Emitters {
                 if radiance.max_element() <= 0.0 {
                     continue;
                 }
-                let area = 0.5 * (t.v1 - t.v0).cross(t.v2 - t.v0).length();
+                let (_, area) = face_normal_area(t);
                 let luminance = luminance(radiance).max(1e-30);
                 // Power is used only in ratios: area × luminance × sides. Computed in f64 so
                 // that kilometre-sized emitters do not overflow.
-                power.push(area as f64 * luminance as f64 * if m.double_sided { 2.0 } else { 1.0 });
+                power.push(area * luminance as f64 * if m.double_sided { 2.0 } else { 1.0 });
                 list.push(Emitter {
                     motion,
                     triangle: i as u32,
-                    area,
+                    area: area as f32,
                     radiance,
                     double_sided: m.double_sided,
                     textured: m.emissive_texture.is_some(),

@@ -105,7 +105,7 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
     Ok(Loaded {
         layer: Layer {
             path: path.to_path_buf(),
-            transform: Mat4::IDENTITY,
+            transform: glam::DMat4::IDENTITY,
             nodes,
             roots,
             meshes,

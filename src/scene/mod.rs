@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use glam::{Mat4, Quat, Vec3};
+use glam::{DMat4, DVec3, Mat4, Quat, Vec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -207,7 +207,7 @@ impl Default for Clip {
 #[derive(Debug, Clone)]
 pub struct Layer {
     pub path: PathBuf,
-    pub transform: Mat4,
+    pub transform: DMat4,
     pub nodes: Vec<Node>,
     pub roots: Vec<usize>,
     pub meshes: Vec<Mesh>,
@@ -241,8 +241,9 @@ pub enum CameraChoice {
 /// A pinhole camera given by position, target and up vector.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LookAt {
-    pub position: Vec3,
-    pub look_at: Vec3,
+    /// World space, in f64 like every world transform.
+    pub position: DVec3,
+    pub look_at: DVec3,
     pub up: Vec3,
     /// Vertical field of view in radians.
     pub yfov: f32,
@@ -262,7 +263,7 @@ pub enum CameraSpec {
 pub struct LayerDesc {
     pub path: PathBuf,
     /// Applied to the whole layer, cameras and lights included.
-    pub transform: Mat4,
+    pub transform: DMat4,
     /// Motion tags by node name; they win over tags in the file.
     pub tags: BTreeMap<String, Motion>,
     /// The animation clips that play (names or `animations[i]`); `None`: all.
@@ -515,14 +516,14 @@ impl Layer {
     }
 
     /// Local transform of node `i` at time `t` (rest TRS overridden by animation channels).
-    fn local(&self, i: usize, t: f32, anim: &HashMap<(usize, u8), &anim::Sampler>) -> Mat4 {
+    fn local(&self, i: usize, t: f32, anim: &HashMap<(usize, u8), &anim::Sampler>) -> DMat4 {
         let n = &self.nodes[i];
         let tr = anim
             .get(&(i, 0))
             .map_or(n.translation, |s| s.sample_vec3(t));
         let ro = anim.get(&(i, 1)).map_or(n.rotation, |s| s.sample_quat(t));
         let sc = anim.get(&(i, 2)).map_or(n.scale, |s| s.sample_vec3(t));
-        Mat4::from_scale_rotation_translation(sc, ro, tr)
+        DMat4::from_scale_rotation_translation(sc.as_dvec3(), ro.as_dquat(), tr.as_dvec3())
     }
 
     fn samplers(&self) -> HashMap<(usize, u8), &anim::Sampler> {
@@ -541,12 +542,22 @@ impl Layer {
         m
     }
 
-    /// World matrix of every node at time `t`, the layer transform included.
+    /// World matrix of every node at time `t`, the layer transform included, rounded to
+    /// f32 (for reports and tests; rendering uses [`Self::world_matrices_f64`]).
     pub fn world_matrices(&self, t: f32) -> Vec<Mat4> {
+        self.world_matrices_f64(t)
+            .iter()
+            .map(DMat4::as_mat4)
+            .collect()
+    }
+
+    /// World matrix of every node at time `t`, the layer transform included, composed in
+    /// f64: a node 1e6 from the origin keeps the precision of its local transform.
+    pub fn world_matrices_f64(&self, t: f32) -> Vec<DMat4> {
         let anim = self.samplers();
         let n = self.nodes.len();
-        let mut world = vec![Mat4::IDENTITY; n];
-        let mut stack: Vec<(usize, Mat4)> = (0..n)
+        let mut world = vec![DMat4::IDENTITY; n];
+        let mut stack: Vec<(usize, DMat4)> = (0..n)
             .filter(|&i| self.nodes[i].parent.is_none())
             .map(|i| (i, self.transform))
             .collect();
@@ -605,7 +616,60 @@ impl Scene {
                 "the scene has no camera; name one or give one in the job file",
             ));
         }
+        scene.check_extent(desc.file)?;
         Ok(scene)
+    }
+
+    /// Refuses a scene whose size f32 rendering cannot represent ([`EXTENT_LIMITS`]): the
+    /// largest side of the world-space box around its geometry (every prim, at the start of
+    /// its animation), camera and punctual lights. Render space is centred on the static set
+    /// ([`Self::render_origin`]), so where the scene sits does not matter, only its size.
+    pub fn check_extent(&self, file: &Path) -> Result<()> {
+        let t0 = self.time_range().map_or(0.0, |r| r.0);
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        let mut add = |p: DVec3| {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        };
+        for layer in &self.layers {
+            let world = layer.world_matrices_f64(t0);
+            for (i, node) in layer.nodes.iter().enumerate() {
+                if let Some(m) = node.mesh {
+                    for p in &layer.meshes[m].primitives {
+                        for v in &p.positions {
+                            add(world[i].transform_point3(v.as_dvec3()));
+                        }
+                    }
+                }
+                if node.light.is_some() || node.camera.is_some() {
+                    add(world[i].w_axis.truncate());
+                }
+            }
+        }
+        if let Some(CameraChoice::LookAt(l)) = &self.camera {
+            add(l.position);
+        }
+        let extent = (hi - lo).max_element();
+        let (min, max) = EXTENT_LIMITS;
+        let why = if !extent.is_finite() && lo.x <= hi.x {
+            "is not finite"
+        } else if extent > max {
+            "is too large: squared distances would overflow f32"
+        } else if extent > 0.0 && extent < min {
+            "is too small: squared distances would underflow f32"
+        } else {
+            return Ok(());
+        };
+        Err(Error::input(
+            file,
+            "scene",
+            format!(
+                "the scene's size, {extent:.3e} units (largest side of the box around its \
+                 geometry, camera and lights), {why}; anchorage renders sizes from {min:e} to \
+                 {max:e} (wherever the scene sits): scale the layers' transforms into that range"
+            ),
+        ))
     }
 
     /// Loads the layers and resolves tags; the camera is resolved where one exists (a camera
@@ -680,13 +744,19 @@ impl Scene {
     /// (glTF §3.7.3) and morph targets (§3.7.2.2) applied. Masked triangles are alpha-tested
     /// against the scene's materials.
     pub fn geometry(&self, t: f32, motion: Motion) -> Geometry {
+        self.geometry_in(t, motion, DVec3::ZERO)
+    }
+
+    /// [`Self::geometry`] in the render space whose origin is the world point `origin`
+    /// (transforms composed in f64, `origin` subtracted before rounding to f32).
+    pub fn geometry_in(&self, t: f32, motion: Motion, origin: DVec3) -> Geometry {
         let mut g = Geometry {
             alpha: Some(Arc::new(self.surfaces())),
             ..Geometry::default()
         };
         let mut prim_base = 0u32;
         for layer in &self.layers {
-            let world = layer.world_matrices(t);
+            let world = layer.world_matrices_f64(t);
             let anim = layer.samplers();
             for (i, node) in layer.nodes.iter().enumerate() {
                 let Some(m) = node.mesh else { continue };
@@ -694,12 +764,12 @@ impl Scene {
                     continue;
                 }
                 let weights = layer.morph_weights(i, t, &anim);
-                let joints: Option<Vec<Mat4>> = node.skin.map(|s| {
+                let joints: Option<Vec<DMat4>> = node.skin.map(|s| {
                     let skin = &layer.skins[s];
                     skin.joints
                         .iter()
                         .zip(&skin.inverse_bind)
-                        .map(|(&j, ib)| world[j] * *ib)
+                        .map(|(&j, ib)| world[j] * ib.as_dmat4())
                         .collect()
                 });
                 for p in &layer.meshes[m].primitives {
@@ -709,6 +779,7 @@ impl Scene {
                         joints.as_deref(),
                         &weights,
                         prim_base + i as u32,
+                        origin,
                     );
                 }
             }
@@ -719,37 +790,88 @@ impl Scene {
 
     /// Punctual lights in world space at time `t`.
     pub fn lights(&self, t: f32) -> Vec<PunctualLight> {
+        self.lights_in(t, DVec3::ZERO)
+    }
+
+    /// Punctual lights at time `t` in the render space whose origin is `origin`.
+    pub fn lights_in(&self, t: f32, origin: DVec3) -> Vec<PunctualLight> {
         let mut out = Vec::new();
         for layer in &self.layers {
-            let world = layer.world_matrices(t);
+            let world = layer.world_matrices_f64(t);
             for (i, node) in layer.nodes.iter().enumerate() {
                 if let Some(l) = node.light {
-                    out.push(PunctualLight::new(&layer.lights[l], world[i]));
+                    out.push(PunctualLight::new(&layer.lights[l], world[i], origin));
                 }
             }
         }
         out
     }
 
-    /// The job's camera at time `t` for an image of `aspect` = width / height.
+    /// The job's camera at time `t` for an image of `aspect` = width / height, in world
+    /// space.
     pub fn camera_at(&self, t: f32, aspect: f32) -> FrameCamera {
+        self.camera_in(t, aspect, DVec3::ZERO)
+    }
+
+    /// The job's camera in the render space whose origin is `origin`.
+    pub fn camera_in(&self, t: f32, aspect: f32, origin: DVec3) -> FrameCamera {
         match self.camera.as_ref().expect("Scene::load requires a camera") {
             CameraChoice::Node { layer, node } => {
                 let l = &self.layers[*layer];
-                let world = l.world_matrices(t)[*node];
+                let world = l.world_matrices_f64(t)[*node];
                 let cam = &l.cameras[l.nodes[*node].camera.expect("camera node")];
-                FrameCamera::from_matrix(world, cam.projection, cam.clip, aspect)
+                FrameCamera::from_matrix(world, origin, cam.projection, cam.clip, aspect)
             }
-            CameraChoice::LookAt(l) => {
-                FrameCamera::look_at(l.position, l.look_at, l.up, l.yfov, aspect).with_clip(l.clip)
-            }
+            CameraChoice::LookAt(l) => FrameCamera::look_at(
+                (l.position - origin).as_vec3(),
+                (l.look_at - origin).as_vec3(),
+                l.up,
+                l.yfov,
+                aspect,
+            )
+            .with_clip(l.clip),
         }
     }
 
-    /// Static prims with their BVH. Static prims do not move (tag resolution enforces it), so
-    /// this is evaluated once per render, at any time.
+    /// The world point that is the origin of render space, fixed for a whole render: the
+    /// centre of the static set's bounding box (the camera's position at time 0 when there
+    /// is no static geometry).
+    ///
+    /// Vertices, lights and the camera are converted to f32 relative to it, so that a set
+    /// 1e6 from the world origin has the precision of one at the origin (f32 spacing there
+    /// is 0.0625: a room's lamp merges with its ceiling). It is fixed per render, not per
+    /// frame, because the static BVH is built once and the state kept across frames
+    /// (anchors, cache records, photons) is stored in render space. It is the static set's
+    /// centre rather than the camera's position so that it depends on nothing but the
+    /// static set — the same for every chunk of a shot whatever its frame range, unchanged
+    /// by camera edits — which is also what invalidates that state when it changes. The
+    /// static set is what the render's precision is spent on: its farthest point is its
+    /// half-diagonal away, as for the same set modelled around the world origin.
+    pub fn render_origin(&self) -> DVec3 {
+        let g = self.geometry_in(0.0, Motion::Static, DVec3::ZERO);
+        let mut lo = Vec3::splat(f32::MAX);
+        let mut hi = Vec3::splat(f32::MIN);
+        for t in &g.triangles {
+            for v in [t.v0, t.v1, t.v2] {
+                lo = lo.min(v.into());
+                hi = hi.max(v.into());
+            }
+        }
+        if lo.x > hi.x || !(lo.is_finite() && hi.is_finite()) {
+            return match &self.camera {
+                Some(_) => self.camera_in(0.0, 1.0, DVec3::ZERO).origin.as_dvec3(),
+                None => DVec3::ZERO,
+            };
+        }
+        0.5 * (lo.as_dvec3() + hi.as_dvec3())
+    }
+
+    /// Static prims with their BVH, in render space ([`Self::render_origin`]). Static prims
+    /// do not move (tag resolution enforces it), so this is evaluated once per render, at any
+    /// time.
     pub fn statics(&self) -> StaticSet {
-        StaticSet::new(self.geometry(0.0, Motion::Static))
+        let origin = self.render_origin();
+        StaticSet::with_origin(self.geometry_in(0.0, Motion::Static, origin), origin)
     }
 
     /// The render-ready scene at time `t`, sharing the static set: the one place a frame's
@@ -762,14 +884,14 @@ impl Scene {
         statics: &StaticSet,
     ) -> (FrameScene, EvaluateTimings) {
         let start = Instant::now();
-        let dynamic = self.geometry(t, Motion::Dynamic);
+        let dynamic = self.geometry_in(t, Motion::Dynamic, statics.origin);
         let animation = start.elapsed().as_secs_f64();
         let start = Instant::now();
         let frame = FrameScene::new(
             statics,
             dynamic,
-            self.lights(t),
-            self.camera_at(t, aspect),
+            self.lights_in(t, statics.origin),
+            self.camera_in(t, aspect, statics.origin),
             &self.surfaces(),
         );
         let timings = EvaluateTimings {
@@ -819,6 +941,13 @@ fn camera_node(layers: &[Layer], name: &str, file: &Path) -> Result<CameraChoice
         }
     }
 }
+
+/// Smallest and largest scene size [`Scene::check_extent`] accepts. Measured on the example
+/// room (size 6.5, area-lit): it renders right from scale 1e-18 to 1e18 (sizes 6.5e-18 to
+/// 6.5e18), and wrong at 1e-19 and 1e19, where squared distances leave f32's range; the
+/// limits keep a factor of 1000 for scenes whose details or distances are far smaller or
+/// larger than their size.
+pub const EXTENT_LIMITS: (f64, f64) = (1e-15, 1e15);
 
 /// Seconds [`Scene::evaluate`] spent.
 #[derive(Debug, Clone, Copy, Default)]

@@ -248,6 +248,21 @@ pub fn render(job: &Job, frame: i32) -> FrameImage {
     .expect("frame renders")
 }
 
+/// Renders `frames` in order in memory, carrying the cache and anchors from frame to frame
+/// as a render does.
+pub fn render_frames(job: &Job, frames: &[i32]) -> Vec<FrameImage> {
+    let scene = job.load_scene().expect("scene loads");
+    let resources = pipeline::new_resources(job, &scene).expect("resources");
+    let mut state = FrameState::default();
+    frames
+        .iter()
+        .map(|&f| {
+            pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut blank_stats())
+                .expect("frame renders")
+        })
+        .collect()
+}
+
 fn blank_stats() -> FrameStats {
     FrameStats {
         frame: 0,

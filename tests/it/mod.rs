@@ -8,6 +8,7 @@ mod hardening;
 mod layout;
 mod lighting;
 mod materials;
+mod offsets;
 mod photons;
 mod python;
 mod scenes;
