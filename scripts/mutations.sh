@@ -37,11 +37,13 @@ restore() {
     git apply -R "$applied" && applied=""
   fi
 }
-trap restore EXIT INT TERM
+trap restore EXIT
+trap 'restore; exit 130' INT TERM
 
+# Builds the integration-test binary and prints its path (empty if the build failed).
 test_binary() {
   cargo test --release --test main --no-run --message-format=json 2>/dev/null |
-    sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1
+    grep -F '"kind":["test"]' | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1
 }
 
 declare -A RESULT
@@ -53,8 +55,8 @@ for name in "${names[@]}"; do
   echo "== $name: $(sed -n 's/^# //p' "$patch" | head -1)"
   git apply "$patch"
   applied="$patch"
-  cargo build --release --tests --quiet 2>&1 | grep -E '^error' && { echo "does not build" >&2; exit 2; }
   bin="$(test_binary)"
+  [ -n "$bin" ] || { echo "mutations.sh: $name does not build" >&2; exit 2; }
   log="target/mutations/$name.log"
   mkdir -p target/mutations
   # shellcheck disable=SC2086
