@@ -156,7 +156,7 @@ fn a_moving_light_reaches_the_indirect_light_through_re_estimated_anchors() {
 /// re-shot (§3.2); if they were not, the floor would keep the wall's light behind the plate.
 /// Frames 10, 12 and 20 of a sequence must agree with brute force on the same caches within
 /// 15 % per tile (measured: pass from 6.5 %; re-shooting nothing, the floor behind the plate
-/// keeps the wall's light, many times the allowance) and with the path tracer within 80 %
+/// keeps the wall's light: 9 400 %; L_i frozen, 38 %) and with the path tracer within 80 %
 /// (brute force itself needs 63 % in the plate's penumbra, where the photon estimates blur
 /// the shadow edge).
 #[test]
