@@ -19,6 +19,21 @@ pub struct FrameImage {
     /// Cached methods only (else `None`): `anchor_id` and `reshoot` AOVs, see [`Pixel`].
     pub anchor_id: Option<Vec<u32>>,
     pub reshoot: Option<Vec<f32>>,
+    /// Per pixel, the variance of the pixel's mean: the sample variance of its camera
+    /// samples divided by their number, for the beauty's RGB and the `indirect` RGB (as
+    /// Mitsuba 3 keeps beside its reference images). The samples are scrambled-QMC points,
+    /// not independent ones, so this is the variance a Monte Carlo estimate with as many
+    /// samples would have: for the smooth integrands of rendering an upper bound in practice.
+    /// In memory only (statistical image tests); not written to the EXR.
+    pub variance: PixelVariance,
+}
+
+/// [`FrameImage::variance`]: per pixel, the variance of the mean of the beauty and of the
+/// `indirect` AOV, RGB.
+#[derive(Debug, Clone, Default)]
+pub struct PixelVariance {
+    pub beauty: Vec<[f32; 3]>,
+    pub indirect: Vec<[f32; 3]>,
 }
 
 impl FrameImage {
@@ -46,6 +61,9 @@ pub struct Pixel {
     pub anchor_id: u32,
     /// Cached methods: weighted fraction of the contributing strata re-traced this frame.
     pub reshoot: f32,
+    /// Variance of the mean of the beauty and of the indirect RGB ([`FrameImage::variance`]).
+    pub beauty_var: [f32; 3],
+    pub indirect_var: [f32; 3],
 }
 
 /// Sums a pixel's samples: emission, direct and indirect radiance, coverage and depth.
@@ -59,6 +77,9 @@ pub struct Accumulator {
     anchor: Option<u32>,
     reshoot: f32,
     cached: f32,
+    /// Sums of squares of each camera sample's beauty and indirect radiance.
+    beauty_sq: glam::DVec3,
+    indirect_sq: glam::DVec3,
 }
 
 impl Default for Accumulator {
@@ -72,6 +93,8 @@ impl Default for Accumulator {
             anchor: None,
             reshoot: 0.0,
             cached: 0.0,
+            beauty_sq: glam::DVec3::ZERO,
+            indirect_sq: glam::DVec3::ZERO,
         }
     }
 }
@@ -90,6 +113,21 @@ impl Accumulator {
     pub fn add(&mut self, direct: Vec3, indirect: Vec3) {
         self.direct += direct;
         self.indirect += indirect;
+    }
+
+    /// The beauty and indirect radiance summed so far, to be handed to
+    /// [`Accumulator::end_sample`] once the next camera sample has been shaded.
+    pub fn begin_sample(&self) -> (Vec3, Vec3) {
+        (self.emission + self.direct + self.indirect, self.indirect)
+    }
+
+    /// Ends a camera sample begun with `begun` ([`Accumulator::begin_sample`]): its radiance
+    /// enters the per-pixel variance.
+    pub fn end_sample(&mut self, begun: (Vec3, Vec3)) {
+        let (b, i) = self.begin_sample();
+        let (db, di) = ((b - begun.0).as_dvec3(), (i - begun.1).as_dvec3());
+        self.beauty_sq += db * db;
+        self.indirect_sq += di * di;
     }
 
     /// Records what the cache gave a sample: the anchor id (kept from the first sample) and
@@ -111,7 +149,23 @@ impl Accumulator {
         };
         let (e, d, i) = (f(self.emission), f(self.direct), f(self.indirect));
         let b = e + d + i;
+        // Sample variance of the samples (misses are samples of zero), over their number.
+        let var = |sq: glam::DVec3, mean: Vec3| -> [f32; 3] {
+            if spp < 2 {
+                return [0.0; 3];
+            }
+            let n = f64::from(spp);
+            let m = mean.as_dvec3();
+            let v = ((sq - m * m * n) / (n - 1.0)).max(glam::DVec3::ZERO) / n;
+            if v.is_finite() {
+                v.as_vec3().to_array()
+            } else {
+                [0.0; 3]
+            }
+        };
         Pixel {
+            beauty_var: var(self.beauty_sq, b),
+            indirect_var: var(self.indirect_sq, i),
             beauty: [b.x, b.y, b.z, self.hits * inv],
             direct: d.to_array(),
             indirect: i.to_array(),
@@ -151,6 +205,10 @@ pub fn render_rows<S: Default + Send>(
         depth: Vec::with_capacity(n),
         anchor_id: Some(Vec::with_capacity(n)),
         reshoot: Some(Vec::with_capacity(n)),
+        variance: PixelVariance {
+            beauty: Vec::with_capacity(n),
+            indirect: Vec::with_capacity(n),
+        },
     };
     let mut states = Vec::with_capacity(height as usize);
     let (mut ids, mut reshoot) = (Vec::with_capacity(n), Vec::with_capacity(n));
@@ -162,6 +220,8 @@ pub fn render_rows<S: Default + Send>(
             img.depth.push(p.depth);
             ids.push(p.anchor_id);
             reshoot.push(p.reshoot);
+            img.variance.beauty.push(p.beauty_var);
+            img.variance.indirect.push(p.indirect_var);
         }
         states.push(state);
     }

@@ -34,7 +34,7 @@ use crate::cache::CacheParams;
 use crate::interaction::{Materials, SurfacePoint, direct_irradiance, trace_camera};
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::FrameScene;
-pub use film::{Accumulator, FrameImage, Pixel, RenderCounts};
+pub use film::{Accumulator, FrameImage, Pixel, PixelVariance, RenderCounts};
 
 /// Settings of the photon-mapping methods ([`GiParams::preset`] gives the presets).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -257,7 +257,9 @@ pub fn render_pixels<S: Shade>(
                 dir: d,
                 sp,
             };
+            let begun = acc.begin_sample();
             method.sample(ctx, &mut pixel, row, &hit, &mut acc);
+            acc.end_sample(begun);
         }
         acc.finish(spp)
     })

@@ -3,6 +3,7 @@
 
 use super::common::*;
 use super::scenes::base64_encode;
+use super::stat::{Welch, assert_agrees};
 use anchorage::compare::{Aov, rms_error_pct};
 use anchorage::integrator::FrameImage;
 use anchorage::pipeline;
@@ -40,19 +41,22 @@ pub(super) fn example(method: &str, extra: &str) -> anchorage::job::Job {
 }
 
 /// Same caches, same photons: anchors re-use irradiance at nearby points instead of
-/// estimating it at every gather hit, which blurs it over D_max; measured 2–4 % RMS on the
-/// indirect AOV at these settings, bounded at 8 %. Re-shot rays stay a small share.
+/// estimating it at every gather hit, which blurs it over D_max. Held per tile of 8 × 8
+/// (the statistical comparison of [`super::stat`]) against brute force on the same caches
+/// over frames 12–15 while the cube moves, within 6 % (measured: passes from 3.8 %; never
+/// re-shooting, 20 %; L_i frozen, 7.8 %), and against the path-traced reference at the
+/// allowance brute force itself needs there, 30 % (measured: brute force from 22 %).
+/// Re-shot rays stay a small share.
 #[test]
 fn anchors_agree_with_brute_force_frame_by_frame() {
     let frames = 10..16;
     let a = render_sequence(&example("anchors", ""), frames.clone());
     let b = render_sequence(&example("brute-force", ""), frames);
     for ((ia, sa), (ib, sb)) in a.iter().zip(&b) {
-        let beauty = rms_error_pct(ia, ib, Aov::Beauty);
-        let indirect = rms_error_pct(ia, ib, Aov::Indirect);
         eprintln!(
-            "frame {}: beauty {beauty:.2} %, indirect {indirect:.2} %, caches {} / {}, anchors {}, reshot {} of {}",
+            "frame {}: indirect RMS {:.2} %, caches {} / {}, anchors {}, reshot {} of {}",
             sa.frame,
+            rms_error_pct(ia, ib, Aov::Indirect),
             sa.counts.caches,
             sb.counts.caches,
             sa.counts.anchors,
@@ -60,15 +64,37 @@ fn anchors_agree_with_brute_force_frame_by_frame() {
             sb.counts.rays_shot
         );
         assert_eq!(sa.counts.caches, sb.counts.caches, "same cache placement");
-        assert!(
-            indirect < 8.0,
-            "frame {}: indirect RMS {indirect} %",
-            sa.frame
-        );
-        assert!(beauty < 3.0, "frame {}: beauty RMS {beauty} %", sa.frame);
         assert!(sa.counts.anchors > 0);
         assert!(ia.anchor_id.as_ref().unwrap().iter().any(|&id| id > 0));
     }
+    let later = |v: &[(FrameImage, anchorage::stats::FrameStats)]| -> Vec<FrameImage> {
+        v[2..].iter().map(|x| x.0.clone()).collect()
+    };
+    let (la, lb) = (later(&a), later(&b));
+    let (ra, rb): (Vec<&FrameImage>, Vec<&FrameImage>) = (la.iter().collect(), lb.iter().collect());
+    assert_agrees(
+        "example-anchors-vs-brute-force",
+        &ra,
+        &rb,
+        Aov::Indirect,
+        Welch::biased(8, 0.06),
+    );
+    let pt = render(&example("path-trace", r#","path_samples":512"#), 15);
+    let w = Welch::biased(8, 0.3);
+    assert_agrees(
+        "example-brute-force-vs-path-trace",
+        &[&b[5].0],
+        &[&pt],
+        Aov::Indirect,
+        w,
+    );
+    assert_agrees(
+        "example-anchors-vs-path-trace",
+        &[&a[5].0],
+        &[&pt],
+        Aov::Indirect,
+        w,
+    );
     // After the first frame, only strata that may see the moving cube are re-traced: in this
     // small room the cube fills much of many hemispheres (measured ~12 %).
     let later = &a[3].1;
@@ -208,14 +234,18 @@ fn anchors_give_the_same_bytes_with_one_and_two_threads() {
     assert_same_bytes_with_1_and_2_threads(&job, &["--frames", "4-7"], &names);
 }
 
-/// On a fixed camera, anchors flicker less than brute force on the indirect light. This brute
-/// force is coherent already (it keeps its records and their gather directions and traces
-/// the same QMC photon paths every frame); what anchors add is fewer, wider estimates (twice
-/// the photons, `anchors.k_scale`) shared by many strata, and re-traced strata that keep
-/// their anchors when they land where they did. Measured: 1.25 % against 1.32 %.
+/// On a fixed camera, anchors flicker no more than brute force on the indirect light, at
+/// the same number of photons per estimate (`anchors.k_scale` 1; the default 2 gives anchors
+/// twice brute force's photons, which alone makes them steadier). This brute force is
+/// coherent already (it keeps its records and their gather directions and traces the same
+/// QMC photon paths every frame); anchors must not add flicker of their own: re-traced
+/// strata that keep their anchors when they land where they did, and anchors placed D_max
+/// apart. Measured: 1.318 % against 1.322 %; never re-shooting, 1.71 %; D_max four times
+/// larger, 1.38 %. Bounded at 2 % above brute force. (Freezing anchors would flicker less:
+/// the accuracy tests catch that.)
 #[test]
-fn anchors_flicker_less_than_brute_force() {
-    let job = example("anchors", "");
+fn anchors_flicker_no_more_than_brute_force_with_as_many_photons() {
+    let job = example("anchors", r#","anchors":{"k_scale":1}"#);
     let frames = 20..26;
     let a: Vec<FrameImage> = render_sequence(&job, frames.clone())
         .into_iter()
@@ -230,7 +260,7 @@ fn anchors_flicker_less_than_brute_force() {
     eprintln!("indirect flicker: anchors {fa:?} %, brute force {fb:?} % over {na} pixels");
     assert!(na > 1000);
     assert!(
-        fa.unwrap() < 0.98 * fb.unwrap(),
+        fa.unwrap() < 1.02 * fb.unwrap(),
         "anchors {fa:?} vs brute force {fb:?}"
     );
 }
@@ -253,14 +283,18 @@ fn d_max_absolute_and_importance_density() {
         frames,
     );
     for (name, run) in [("constant", &constant), ("importance", &importance)] {
-        for ((ia, sa), (ib, _)) in run.iter().zip(&b) {
-            let indirect = rms_error_pct(ia, ib, Aov::Indirect);
-            eprintln!(
-                "{name} frame {}: indirect {indirect:.2} %, anchors {}",
-                sa.frame, sa.counts.anchors
-            );
-            assert!(indirect < 8.0, "{name}: {indirect} %");
-        }
+        eprintln!("{name}: anchors {}", run[0].1.counts.anchors);
+        let (ra, rb): (Vec<&FrameImage>, Vec<&FrameImage>) = (
+            run.iter().map(|x| &x.0).collect(),
+            b.iter().map(|x| &x.0).collect(),
+        );
+        assert_agrees(
+            &format!("d-max-{name}-vs-brute-force"),
+            &ra,
+            &rb,
+            Aov::Indirect,
+            Welch::biased(8, 0.1),
+        );
     }
     assert_ne!(
         constant[0].1.counts.anchors, importance[0].1.counts.anchors,

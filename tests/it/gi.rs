@@ -219,13 +219,17 @@ fn photon_power_is_conserved() {
     }
 }
 
-/// Brute force against the unbiased reference on the example. Photon mapping is biased
-/// (density estimation blurs over k photons, darkening corners and edges) and the cache
-/// interpolates: measured 2–3 % on the beauty at this size, dominated by the 16-sample
-/// direct-light noise common to both, and ~10 % on the indirect AOV alone. The mean
-/// indirect light agrees within 3 % (the bias is local, not a loss of energy).
+/// Brute force against the unbiased reference on the example, per tile with the
+/// statistical comparison of [`super::stat`]. Photon mapping is biased (density estimation
+/// blurs over k photons, darkening corners and brightening edges) and the cache
+/// interpolates: the bias allowance is stated per tile of 8 × 8 pixels, relative to the
+/// reference's tile (at least a fifth of the image mean): 30 % on the indirect AOV (measured:
+/// passes from 22 %), 15 % on the beauty (measured: from 9 %). The mean indirect light agrees within 3 % (the bias is local, not
+/// a loss of energy).
 #[test]
 fn brute_force_is_close_to_the_path_traced_reference() {
+    use super::stat::{Welch, assert_agrees};
+    use anchorage::compare::Aov;
     let job_for = |method: &str, extra: &str| {
         job_from_json(
             &example_job(),
@@ -239,17 +243,25 @@ fn brute_force_is_close_to_the_path_traced_reference() {
     };
     let bf = render(&job_for("brute-force", r#","preset":"draft""#), 12);
     let pt = render(&job_for("path-trace", r#","path_samples":512"#), 12);
-    let beauty = anchorage::compare::rms_error_pct(&bf, &pt, anchorage::compare::Aov::Beauty);
-    let indirect = anchorage::compare::rms_error_pct(&bf, &pt, anchorage::compare::Aov::Indirect);
+    assert_agrees(
+        "brute-force-indirect",
+        &[&bf],
+        &[&pt],
+        Aov::Indirect,
+        Welch::biased(8, 0.3),
+    );
+    assert_agrees(
+        "brute-force-beauty",
+        &[&bf],
+        &[&pt],
+        Aov::Beauty,
+        Welch::biased(8, 0.15),
+    );
     let (mb, mp) = (
         mean(&bf, |i| bf.indirect[i][1]),
         mean(&pt, |i| pt.indirect[i][1]),
     );
-    eprintln!(
-        "beauty RMS {beauty:.2} %, indirect RMS {indirect:.2} %, mean indirect {mb:.4} vs {mp:.4}"
-    );
-    assert!(beauty < 5.0, "beauty RMS {beauty} %");
-    assert!(indirect < 20.0, "indirect RMS {indirect} %");
+    eprintln!("mean indirect {mb:.4} vs {mp:.4}");
     assert!((mb - mp).abs() / mp < 0.03, "mean indirect {mb} vs {mp}");
 }
 

@@ -1,3 +1,4 @@
+mod anchor_faults;
 mod anchors;
 mod cli;
 pub mod common;
@@ -13,4 +14,6 @@ mod photons;
 mod python;
 mod scenes;
 mod schemas;
+pub mod sets;
+pub mod stat;
 mod tags;

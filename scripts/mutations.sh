@@ -1,0 +1,78 @@
+#!/usr/bin/env bash
+# Mutation check for the anchor method (issue 10): applies each deliberate breakage kept in
+# scripts/mutations/NAME.patch to the source, builds the tests, runs the tests that are meant
+# to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
+# restored after each one, also on interrupt.
+#
+#   scripts/mutations.sh                 every mutation
+#   scripts/mutations.sh d-max-4x ...    the named ones
+#   MUTATION_TESTS="filter ..." scripts/mutations.sh NAME   other test filters
+#
+# The tests per mutation are listed below (the test binary's name filters); each patch's
+# first lines say what it breaks. Needs a clean src/ (uncommitted changes there would be
+# mixed into the mutants). Exit status: 0 when every mutation was caught, 1 otherwise.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+declare -A TESTS=(
+  [no-reshoot]="anchor_faults anchors::"
+  [frozen-li]="anchor_faults anchors::"
+  [d-max-4x]="anchor_faults anchors::"
+  [no-shadow-ray-reuse-check]="anchor_faults anchors::"
+  [inverted-importance]="anchor_faults anchors::"
+)
+ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance)
+
+names=("$@")
+[ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
+
+if ! git diff --quiet -- src; then
+  echo "mutations.sh: src/ has uncommitted changes; commit or stash them first" >&2
+  exit 2
+fi
+
+applied=""
+restore() {
+  if [ -n "$applied" ]; then
+    git apply -R "$applied" && applied=""
+  fi
+}
+trap restore EXIT
+trap 'restore; exit 130' INT TERM
+
+# Builds the integration-test binary and prints its path (empty if the build failed).
+test_binary() {
+  cargo test --release --test main --no-run --message-format=json 2>/dev/null |
+    grep -F '"kind":["test"]' | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1
+}
+
+declare -A RESULT
+missed=0
+for name in "${names[@]}"; do
+  patch="scripts/mutations/$name.patch"
+  [ -f "$patch" ] || { echo "mutations.sh: no $patch" >&2; exit 2; }
+  filters="${MUTATION_TESTS:-${TESTS[$name]:-anchor}}"
+  echo "== $name: $(sed -n 's/^# //p' "$patch" | head -1)"
+  git apply "$patch"
+  applied="$patch"
+  bin="$(test_binary)"
+  [ -n "$bin" ] || { echo "mutations.sh: $name does not build" >&2; exit 2; }
+  log="target/mutations/$name.log"
+  mkdir -p target/mutations
+  # shellcheck disable=SC2086
+  if "$bin" $filters --test-threads 2 >"$log" 2>&1; then
+    RESULT[$name]="MISSED"
+    missed=$((missed + 1))
+  else
+    RESULT[$name]="CAUGHT by $(sed -n 's/^    \(it::[^ ]*\)$/\1/p' "$log" | sort -u | tr '\n' ' ')"
+  fi
+  echo "   ${RESULT[$name]} (log: $log)"
+  restore
+done
+
+echo
+echo "mutation                      result"
+for name in "${names[@]}"; do
+  printf '%-29s %s\n' "$name" "${RESULT[$name]}"
+done
+[ "$missed" -eq 0 ]
