@@ -284,6 +284,16 @@ pub fn stage_json<T: Serialize>(path: &Path, value: &T) -> Result<Staged> {
     })
 }
 
+/// Writes one frame's AOVs as an EXR on its own (outside a frame's set of files).
+pub fn write_exr(path: &Path, img: &FrameImage) -> Result<()> {
+    commit(vec![stage_exr(path, img)?])
+}
+
+/// Writes one preview PNG at exposure 0 on its own.
+pub fn write_png(path: &Path, img: &FrameImage) -> Result<()> {
+    commit(vec![stage_png(path, img, 0.0)?.0])
+}
+
 /// Writes any serialisable value as pretty JSON.
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     commit(vec![stage_json(path, value)?])

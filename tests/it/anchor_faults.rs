@@ -348,8 +348,10 @@ fn importance_shrinks_d_max_where_gathers_land() {
     let resources = pipeline::new_resources(&job, &scene).unwrap();
     let (fs, _) = scene.evaluate(0.0, 1.0, &resources.statics);
     let imp = anchorage::anchor::importons::Importons::trace(&fs, 64, 64, 1.0, job.seed);
-    let near = imp.factor(Vec3::new(1.5, 1.0, 0.0));
-    let far = imp.factor(Vec3::new(1.5, 1.0, 9.0));
+    // Frames are in render space: world minus the static set's centre.
+    let origin = resources.statics.origin.as_vec3();
+    let near = imp.factor(Vec3::new(1.5, 1.0, 0.0) - origin);
+    let far = imp.factor(Vec3::new(1.5, 1.0, 9.0) - origin);
     eprintln!("D_max factor near the view {near:.3}, far {far:.3}");
     assert!(near < 1.0, "near the view: factor {near}");
     assert!(far > 1.0, "far from the view: factor {far}");
