@@ -7,7 +7,7 @@ use std::f32::consts::PI;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::{CacheParams, HIT_DYNAMIC, Stratum};
+use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Stratum};
 use crate::geom::{Motion, basis};
 use crate::interaction::SurfacePoint;
 use crate::sampling::Sampler;
@@ -18,6 +18,25 @@ use crate::scene::FrameScene;
 pub struct GatherHit {
     pub sp: Option<SurfacePoint>,
     pub distance: f32,
+}
+
+impl GatherHit {
+    /// The stratum flags of the hit: [`HIT_DYNAMIC`] for a dynamic prim, [`HIT_BACK`] for
+    /// the back of a surface (none on a miss).
+    pub fn flags(&self) -> u8 {
+        match &self.sp {
+            Some(sp) => {
+                let dynamic = if sp.hit.motion == Motion::Dynamic {
+                    HIT_DYNAMIC
+                } else {
+                    0
+                };
+                let back = if sp.front { 0 } else { HIT_BACK };
+                dynamic | back
+            }
+            None => 0,
+        }
+    }
 }
 
 /// Turns one gather's hits into strata and their radiance: the method's part of a gather
@@ -37,13 +56,7 @@ pub fn estimate_all(
         .map(|(h, &scale)| {
             let strata = h
                 .iter()
-                .map(|g| {
-                    let flags = match &g.sp {
-                        Some(sp) if sp.hit.motion == Motion::Dynamic => HIT_DYNAMIC,
-                        _ => 0,
-                    };
-                    Stratum::new(None, flags, g.distance, scale)
-                })
+                .map(|g| Stratum::new(None, g.flags(), g.distance, scale))
                 .collect();
             let rad = h
                 .iter()

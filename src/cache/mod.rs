@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 pub use gather::{GatherHit, GatherTimings, Resolve};
 use grid::{REACH, RecordGrid};
-pub use record::{HIT_DYNAMIC, Record, Stratum, finish_record};
+pub use record::{ENCLOSED_SHARE, HIT_BACK, HIT_DYNAMIC, Record, Stratum, finish_record};
 
 use crate::geom::Motion;
 use crate::interaction::{SurfacePoint, trace_camera};
@@ -178,11 +178,12 @@ impl IrradianceCache {
         self.records.push(r);
     }
 
-    /// Ward's weight of record `r` at (x, n), or 0 where it must not be used: behind x, or
-    /// facing away. w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
+    /// Ward's weight of record `r` at (x, n), or 0 where it must not be used: behind x,
+    /// facing away, or enclosed ([`Record::enclosed`]).
+    /// w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
     fn weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
         let ndot = n.dot(r.normal);
-        if ndot <= 0.0 {
+        if ndot <= 0.0 || r.enclosed {
             return 0.0;
         }
         let d = x - r.position;
@@ -422,22 +423,23 @@ mod tests {
     /// radiance 1 into the gather (the radiance estimate below). From the floor at distance
     /// d the wall's view factor is F = (1 − d/√(d² + 1))/2, so E = πF and
     /// dE/dd = −(π/2)/(d² + 1)^{3/2}.
+    fn quad(g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3) {
+        for t in [triangle(a, b, c), triangle(a, c, d)] {
+            let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
+            g.triangles.push(t);
+            g.shading.push(TriangleShading {
+                normals: [n; 3],
+                uvs: [Vec2::ZERO; 3],
+                material: 0,
+                prim: 0,
+                masked: false,
+                attributes: crate::geom::NO_ATTRIBUTES,
+            });
+        }
+    }
+
     fn scene() -> FrameScene {
         let mut g = Geometry::default();
-        let quad = |g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3| {
-            for t in [triangle(a, b, c), triangle(a, c, d)] {
-                let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
-                g.triangles.push(t);
-                g.shading.push(TriangleShading {
-                    normals: [n; 3],
-                    uvs: [Vec2::ZERO; 3],
-                    material: 0,
-                    prim: 0,
-                    masked: false,
-                    attributes: crate::geom::NO_ATTRIBUTES,
-                });
-            }
-        };
         let l = 200.0;
         quad(
             &mut g,
@@ -468,6 +470,116 @@ mod tests {
             camera,
             &crate::scene::Surfaces::default(),
         )
+    }
+
+    /// A floor (y = 0, 8 × 8) with a closed unit box standing on it (its bottom face on
+    /// the floor's plane), every face wound counter-clockwise seen from outside.
+    fn box_on_floor() -> FrameScene {
+        let mut g = Geometry::default();
+        let l = 4.0;
+        quad(
+            &mut g,
+            Vec3::new(-l, 0.0, -l),
+            Vec3::new(-l, 0.0, l),
+            Vec3::new(l, 0.0, l),
+            Vec3::new(l, 0.0, -l),
+        );
+        let c = |x: f32, y: f32, z: f32| Vec3::new(x - 0.5, y, z - 0.5);
+        let faces = [
+            [c(0., 1., 0.), c(0., 1., 1.), c(1., 1., 1.), c(1., 1., 0.)], // top
+            [c(0., 0., 0.), c(1., 0., 0.), c(1., 0., 1.), c(0., 0., 1.)], // bottom
+            [c(0., 0., 1.), c(1., 0., 1.), c(1., 1., 1.), c(0., 1., 1.)], // +z
+            [c(0., 0., 0.), c(0., 1., 0.), c(1., 1., 0.), c(1., 0., 0.)], // -z
+            [c(1., 0., 0.), c(1., 1., 0.), c(1., 1., 1.), c(1., 0., 1.)], // +x
+            [c(0., 0., 0.), c(0., 0., 1.), c(0., 1., 1.), c(0., 1., 0.)], // -x
+        ];
+        for [a, b, cc, d] in faces {
+            quad(&mut g, a, b, cc, d);
+        }
+        let statics = StaticSet::new(g);
+        let camera = crate::scene::FrameCamera::look_at(
+            Vec3::new(3.0, 2.0, 3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            1.0,
+            1.0,
+        );
+        FrameScene::new(
+            &statics,
+            Geometry::default(),
+            Vec::new(),
+            camera,
+            &crate::scene::Surfaces::default(),
+        )
+    }
+
+    /// Issue 10 (contact): a static record on a floor that a prim now stands on gathers from
+    /// inside the prim — every ray meets the back of a face, and the inside reflects nothing
+    /// — so its irradiance is 0. Used at the visible floor beside the prim, it gave pixels
+    /// of exactly zero indirect light that no statistic explained. Such a record is
+    /// enclosed: no lookup or placement test uses it.
+    #[test]
+    fn a_record_under_a_box_on_the_floor_is_enclosed_and_never_used() {
+        let frame = box_on_floor();
+        let p = CacheParams::default();
+        // From inside the box straight down: the floor point under it, its normal up.
+        let o = Vec3::new(0.45, 0.5, 0.1);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        assert!(sp.ns.y > 0.99, "the floor's side facing the box");
+        let hits = gather::trace_strata(&frame, &sp, 7, &p);
+        let lit = |_: &SurfacePoint| Vec3::ONE;
+        let (strata, rad) = estimate_all(&[0.1], vec![hits], &lit).remove(0);
+        let r = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0);
+        assert!(
+            r.enclosed,
+            "every ray of a gather inside the box hits a back face"
+        );
+        let mut cache = IrradianceCache::default();
+        cache.set_error(p.error);
+        cache.insert(r.clone());
+        // The visible floor just outside the box's +x face, well inside the record's reach.
+        let x = Vec3::new(0.52, 0.0, 0.1);
+        assert!((x - r.position).length() < 0.5 * p.error * r.radius);
+        let mut used = Vec::new();
+        assert!(
+            cache
+                .interpolate(x, Vec3::Y, 2.0 * p.error, &mut used)
+                .is_none()
+                && used.is_empty(),
+            "an enclosed record interpolated beside the box"
+        );
+        assert!(
+            !cache.covers(x, Vec3::Y, p.error),
+            "placement must put a record there"
+        );
+
+        // A record on the open floor is not enclosed: its rays hit the front of the box.
+        let o = Vec3::new(1.0, 0.5, 0.1);
+        let hit = frame
+            .accel
+            .closest(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                -Vec3::Y,
+                f32::INFINITY,
+            )
+            .unwrap();
+        let sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        let hits = gather::trace_strata(&frame, &sp, 8, &p);
+        let (strata, rad) = estimate_all(&[0.05], vec![hits], &lit).remove(0);
+        let open = finish_record(&sp, Motion::Static, 8, 0.05, strata, &rad, &p, 0);
+        assert!(!open.enclosed && open.irradiance.x > 0.0);
     }
 
     fn wall_radiance(sp: &SurfacePoint) -> Vec3 {

@@ -21,6 +21,15 @@ use crate::interaction::SurfacePoint;
 /// Stratum flag: the gather ray hit a dynamic prim (its radiance was estimated directly).
 pub const HIT_DYNAMIC: u8 = 1;
 
+/// Stratum flag: the gather ray hit the back of a surface. A record most of whose rays do
+/// lies inside closed geometry (see [`Record::enclosed`]).
+pub const HIT_BACK: u8 = 2;
+
+/// The share of a record's strata that must hit back faces for the record to count as
+/// enclosed. Inside a closed object every ray does; above a single-sided lamp panel or
+/// behind a lone wall only the rays towards it do, and the rest escape or meet front faces.
+pub const ENCLOSED_SHARE: f32 = 0.5;
+
 /// One gather direction of a record (the paper's `RadianceSample`, §4.1) in 6 bytes: a
 /// 30-bit anchor link with two flag bits, and the hit distance as an f16 in units of the
 /// record's pixel footprint (scale-free: the same bits at 1e−3 and 1e4; infinite on a miss).
@@ -98,6 +107,12 @@ pub struct Record {
     pub reshot: f32,
     /// The anchor contributing most of the record's irradiance.
     pub dominant_anchor: Option<AnchorId>,
+    /// More than [`ENCLOSED_SHARE`] of the strata hit back faces: the record's gather
+    /// started inside closed geometry — a static record on a floor that a dynamic prim now
+    /// stands on, or a point whose ray origin lies past a contact. Its irradiance (zero, or
+    /// what the inside of a prim reflects) is not the surface's, so interpolation and
+    /// placement ignore it: it is not used, and expires after `max_age` frames (§4.3).
+    pub enclosed: bool,
 }
 
 impl Record {
@@ -129,6 +144,8 @@ pub fn finish_record(
     let [m, n] = p.strata;
     let scale = PI / (m * n) as f32;
     let irradiance = radiance.iter().sum::<Vec3>() * scale;
+    let back = strata.iter().filter(|s| s.flags() & HIT_BACK != 0).count();
+    let enclosed = back as f32 > ENCLOSED_SHARE * strata.len() as f32;
     let inv: f32 = strata
         .iter()
         .filter(|s| s.hit())
@@ -173,6 +190,7 @@ pub fn finish_record(
         strata,
         reshot: 1.0,
         dominant_anchor: None,
+        enclosed,
     }
 }
 

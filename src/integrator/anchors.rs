@@ -92,19 +92,19 @@ fn resolve(
                             == old.distance(scale)
                 })
                 .and_then(|old| old.link());
+            let flags = g.flags();
             let (stratum, radiance) = match (&g.sp, kept) {
                 (Some(sp), Some(id)) if sp.hit.motion == Motion::Static => (
-                    Stratum::new(Some(id), 0, g.distance, scale),
+                    Stratum::new(Some(id), flags, g.distance, scale),
                     set.anchor(id).radiance(),
                 ),
-                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => (
-                    Stratum::new(None, HIT_DYNAMIC, g.distance, scale),
-                    dyn_rad[si],
-                ),
+                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => {
+                    (Stratum::new(None, flags, g.distance, scale), dyn_rad[si])
+                }
                 (Some(sp), _) => {
                     let id = att.attach(set, sp);
                     (
-                        Stratum::new(Some(id), 0, g.distance, scale),
+                        Stratum::new(Some(id), flags, g.distance, scale),
                         set.anchor(id).radiance(),
                     )
                 }
