@@ -58,6 +58,29 @@ pub struct JobFile {
     pub method: MethodSettings,
 }
 
+impl JobFile {
+    /// A job of one scene file with every default (`inspect SCENE.gltf`, the fuzzer).
+    pub fn for_scene(path: PathBuf) -> JobFile {
+        JobFile {
+            scene: vec![LayerFile {
+                path,
+                transform: Default::default(),
+                tags: Default::default(),
+                animations: None,
+            }],
+            camera: None,
+            resolution: default_resolution(),
+            frames: None,
+            fps: default_fps(),
+            frame_offset: 0.0,
+            output: None,
+            seed: 0,
+            render: Default::default(),
+            method: Default::default(),
+        }
+    }
+}
+
 fn default_resolution() -> [u32; 2] {
     [640, 360]
 }

@@ -148,23 +148,8 @@ fn parse_method(s: &str) -> Result<anchorage::job::Method, Error> {
 
 /// A job wrapping a bare scene file, for `inspect SCENE.gltf`.
 fn job_for_scene(path: &Path) -> Result<Job, Error> {
-    let file = anchorage::job::JobFile {
-        scene: vec![anchorage::job::LayerFile {
-            path: PathBuf::from(path.file_name().unwrap_or_default()),
-            transform: Default::default(),
-            tags: Default::default(),
-            animations: None,
-        }],
-        camera: None,
-        resolution: [640, 360],
-        frames: None,
-        fps: 24.0,
-        frame_offset: 0.0,
-        output: None,
-        seed: 0,
-        render: Default::default(),
-        method: Default::default(),
-    };
+    let file =
+        anchorage::job::JobFile::for_scene(PathBuf::from(path.file_name().unwrap_or_default()));
     Job::from_file(path, file, &Overrides::default())
 }
 

@@ -455,14 +455,13 @@ mod tests {
             Vec3::new(0.0, 1.0, l),
             Vec3::new(0.0, 0.0, l),
         );
+        frame_of(g, Vec3::new(3.0, 2.0, 0.0))
+    }
+
+    /// `g` as the static set, seen from `eye` looking at the origin.
+    fn frame_of(g: Geometry, eye: Vec3) -> FrameScene {
         let statics = StaticSet::new(g);
-        let camera = crate::scene::FrameCamera::look_at(
-            Vec3::new(3.0, 2.0, 0.0),
-            Vec3::ZERO,
-            Vec3::Y,
-            1.0,
-            1.0,
-        );
+        let camera = crate::scene::FrameCamera::look_at(eye, Vec3::ZERO, Vec3::Y, 1.0, 1.0);
         FrameScene::new(
             &statics,
             Geometry::default(),
@@ -496,21 +495,7 @@ mod tests {
         for [a, b, cc, d] in faces {
             quad(&mut g, a, b, cc, d);
         }
-        let statics = StaticSet::new(g);
-        let camera = crate::scene::FrameCamera::look_at(
-            Vec3::new(3.0, 2.0, 3.0),
-            Vec3::ZERO,
-            Vec3::Y,
-            1.0,
-            1.0,
-        );
-        FrameScene::new(
-            &statics,
-            Geometry::default(),
-            Vec::new(),
-            camera,
-            &crate::scene::Surfaces::default(),
-        )
+        frame_of(g, Vec3::new(3.0, 2.0, 3.0))
     }
 
     /// Issue 10 (contact): a static record on a floor that a prim now stands on gathers from
