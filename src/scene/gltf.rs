@@ -502,6 +502,14 @@ impl<'a> Reader<'a> {
         };
         let at = name_of("images", image, im.name());
         if textures.images[image].is_none() {
+            if let Some((w, h)) = self.encoded_dimensions(&im)?
+                && w as u64 * h as u64 > MAX_IMAGE_TEXELS
+            {
+                return Err(self.bad(
+                    &at,
+                    format!("{w}×{h} texels exceed the limit of {MAX_IMAGE_TEXELS} (16384²)"),
+                ));
+            }
             let data = gltf::image::Data::from_source(im.source(), Some(self.base), self.buffers)
                 .map_err(|e| self.bad(&at, format!("cannot decode image: {e}")))?;
             let texels = data.width as u64 * data.height as u64;
@@ -525,6 +533,46 @@ impl<'a> Reader<'a> {
         let i = self.offsets.textures + textures.list.len() - 1;
         textures.of_image[image][srgb as usize] = Some(i);
         Ok(i)
+    }
+
+    /// The width and height an image's header declares, read before it is decoded so that
+    /// an oversized image is refused without allocating its texels; `None` where the header
+    /// cannot be read (decoding then reports the error).
+    fn encoded_dimensions(&self, im: &gltf::Image<'_>) -> Result<Option<(u32, u32)>> {
+        let at = name_of("images", im.index(), im.name());
+        let owned;
+        let bytes: &[u8] = match im.source() {
+            gltf::image::Source::View { view, .. } => {
+                let data = &self.buffers[view.buffer().index()].0;
+                match view
+                    .offset()
+                    .checked_add(view.length())
+                    .and_then(|end| data.get(view.offset()..end))
+                {
+                    Some(b) => b,
+                    None => return Ok(None),
+                }
+            }
+            gltf::image::Source::Uri { uri, .. } => {
+                if let Some(rest) = uri.strip_prefix("data:") {
+                    let Some((_, b64)) = rest.split_once(";base64,") else {
+                        return Ok(None);
+                    };
+                    let Some(b) = base64_decode(b64) else {
+                        return Ok(None);
+                    };
+                    owned = b;
+                } else {
+                    let file = self.base.join(urlencoding_decode(uri));
+                    owned = read_limited(&file, &at, MAX_RESOURCE_BYTES)?;
+                }
+                &owned
+            }
+        };
+        Ok(image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .ok()
+            .and_then(|r| r.into_dimensions().ok()))
     }
 
     /// Reads `meshes` (glTF 2.0 §3.7.2) whose primitives use this file's `materials`; also
@@ -1002,6 +1050,31 @@ fn misspelt_motion_key(extras: &gltf::json::Extras) -> Option<String> {
     map.keys()
         .find(|k| k.to_lowercase().contains(MOTION_KEY))
         .cloned()
+}
+
+/// Standard base64 (RFC 4648 §4, padding optional) as data URIs carry it; `None` if invalid.
+fn base64_decode(text: &str) -> Option<Vec<u8>> {
+    let mut out = Vec::with_capacity(text.len() / 4 * 3);
+    let (mut acc, mut bits) = (0u32, 0u32);
+    for c in text.bytes() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' => 62,
+            b'/' => 63,
+            b'=' => break,
+            _ => return None,
+        };
+        acc = (acc << 6) | v as u32;
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    Some(out)
 }
 
 /// Percent-decoding of relative URIs (glTF URIs are RFC 3986).

@@ -378,3 +378,57 @@ fn a_short_fuzz_finds_no_panic() {
     }
     assert!(failures.is_empty(), "panics:\n{}", failures.join("\n"));
 }
+
+/// A PNG header declaring `w`×`h` texels, with no pixel data.
+fn png_header(w: u32, h: u32) -> Vec<u8> {
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend(w.to_be_bytes());
+    ihdr.extend(h.to_be_bytes());
+    ihdr.extend([8, 2, 0, 0, 0]);
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    png.extend(13u32.to_be_bytes());
+    png.extend(&ihdr);
+    png.extend(crc32(&ihdr).to_be_bytes());
+    // An empty IDAT: decoders read the header up to the first data chunk.
+    png.extend(0u32.to_be_bytes());
+    png.extend(b"IDAT");
+    png.extend(crc32(b"IDAT").to_be_bytes());
+    png
+}
+
+fn crc32(data: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in data {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+        }
+    }
+    !c
+}
+
+#[test]
+fn an_image_larger_than_16384_squared_is_refused_before_decoding() {
+    let dir = tempdir();
+    std::fs::write(dir.path().join("huge.png"), png_header(20000, 20000)).unwrap();
+    let mut doc = triangle();
+    doc["images"] = json!([{"uri": "huge.png"}]);
+    doc["textures"] = json!([{"source": 0}]);
+    doc["materials"] = json!([{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}]);
+    doc["meshes"][0]["primitives"][0]["material"] = json!(0);
+    assert_refused(&write(dir.path(), &doc), &["images[0]", "20000×20000"]);
+}
+
+#[test]
+fn sparse_storage_must_fit_its_buffer_views() {
+    refused_after(
+        |d| {
+            d["accessors"][1]["sparse"] = json!({
+                "count": 3,
+                "indices": {"bufferView": 3, "componentType": 5125},
+                "values": {"bufferView": 0}
+            });
+        },
+        &["accessors[1].sparse.count", "sparse indices"],
+    );
+}
