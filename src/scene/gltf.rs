@@ -125,15 +125,55 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
 /// file needing an unsupported extension is reported as such rather than as invalid. Also
 /// returns the unsupported optional extensions.
 fn open(path: &Path) -> Result<(gltf::Gltf, Vec<String>)> {
-    let bytes =
-        std::fs::read(path).map_err(|e| Error::input(path, "file", format!("cannot read: {e}")))?;
+    let glb = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("glb"));
+    let limit = if glb { MAX_GLB_BYTES } else { MAX_GLTF_BYTES };
+    let bytes = read_limited(path, "file", limit)?;
     let unchecked = gltf::Gltf::from_slice_without_validation(&bytes)
         .map_err(|e| Error::input(path, "file", format!("not a valid glTF or GLB file: {e}")))?;
     let optional = check_extensions(path, &unchecked)?;
+    super::validate::check(path, unchecked.document.as_json())?;
     drop(unchecked);
     let gltf =
         gltf::Gltf::from_slice(&bytes).map_err(|e| Error::input(path, "file", e.to_string()))?;
     Ok((gltf, optional))
+}
+
+/// The largest `.gltf` (JSON) file read: 256 MiB.
+pub const MAX_GLTF_BYTES: u64 = 256 << 20;
+/// The largest `.glb` file read: a GLB's length is a `u32` (glTF 2.0 §4.4.2).
+pub const MAX_GLB_BYTES: u64 = u32::MAX as u64;
+/// The largest external buffer or image file read (the size a GLB could hold).
+pub const MAX_RESOURCE_BYTES: u64 = u32::MAX as u64;
+/// The most texels a decoded image may have (16384²).
+pub const MAX_IMAGE_TEXELS: u64 = 16384 * 16384;
+
+/// Reads `file` (element `at` of glTF file `path`), which must be a regular file of at most
+/// `limit` bytes: a device such as `/dev/zero` or an oversized file is refused before it is
+/// read, and reading stops at the limit should the file grow meanwhile.
+pub fn read_limited(file: &Path, at: &str, limit: u64) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let bad = |m: String| Error::input(file, at, m);
+    let f = std::fs::File::open(file).map_err(|e| bad(format!("cannot read: {e}")))?;
+    let meta = f.metadata().map_err(|e| bad(format!("cannot read: {e}")))?;
+    if !meta.is_file() {
+        return Err(bad("is not a regular file".into()));
+    }
+    if meta.len() > limit {
+        return Err(bad(format!(
+            "is {} bytes, more than the {limit} bytes allowed",
+            meta.len()
+        )));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    f.take(limit + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| bad(format!("cannot read: {e}")))?;
+    if bytes.len() as u64 > limit {
+        return Err(bad(format!("is more than the {limit} bytes allowed")));
+    }
+    Ok(bytes)
 }
 
 /// Reads `extensionsRequired` and `extensionsUsed` (glTF 2.0 §3.12): a required extension
@@ -171,6 +211,19 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
             && !uri.starts_with("data:")
         {
             let file = base.join(urlencoding_decode(uri));
+            if let Ok(m) = std::fs::metadata(&file)
+                && m.is_file()
+                && m.len() > MAX_RESOURCE_BYTES
+            {
+                return Err(Error::input(
+                    path,
+                    name_of("buffers", b.index(), b.name()),
+                    format!(
+                        "buffer file {} is larger than {MAX_RESOURCE_BYTES} bytes",
+                        file.display()
+                    ),
+                ));
+            }
             if !file.is_file() {
                 return Err(Error::input(
                     path,
@@ -183,13 +236,26 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
     for im in doc.images() {
         if let gltf::image::Source::Uri { uri, .. } = im.source()
             && !uri.starts_with("data:")
-            && !base.join(urlencoding_decode(uri)).is_file()
         {
-            return Err(Error::input(
-                path,
-                name_of("images", im.index(), im.name()),
-                format!("image file {} not found", base.join(uri).display()),
-            ));
+            let file = base.join(urlencoding_decode(uri));
+            let at = name_of("images", im.index(), im.name());
+            if !file.is_file() {
+                return Err(Error::input(
+                    path,
+                    at,
+                    format!("image file {} not found", base.join(uri).display()),
+                ));
+            }
+            if std::fs::metadata(&file).is_ok_and(|m| m.len() > MAX_RESOURCE_BYTES) {
+                return Err(Error::input(
+                    path,
+                    at,
+                    format!(
+                        "image file {} is larger than {MAX_RESOURCE_BYTES} bytes",
+                        file.display()
+                    ),
+                ));
+            }
         }
     }
     Ok(())
@@ -221,8 +287,8 @@ struct Reader<'a> {
 /// is read in (sRGB for colour, linear for normal maps), decoded the first time a material
 /// uses it so.
 struct Textures {
-    /// Every image of the file, decoded when the first texture is met.
-    images: Option<Vec<gltf::image::Data>>,
+    /// The images decoded so far, each the first time a material uses it.
+    images: Vec<Option<gltf::image::Data>>,
     /// The global texture index of each image already converted, linear then sRGB.
     of_image: Vec<[Option<usize>; 2]>,
     list: Vec<Texture>,
@@ -272,7 +338,7 @@ impl<'a> Reader<'a> {
     /// textures (sRGB → linear) and normal maps (linear).
     fn materials(&mut self) -> Result<(Vec<Material>, Vec<Texture>)> {
         let mut textures = Textures {
-            images: None,
+            images: (0..self.doc.images().len()).map(|_| None).collect(),
             of_image: vec![[None; 2]; self.doc.images().len()],
             list: Vec::new(),
         };
@@ -427,26 +493,86 @@ impl<'a> Reader<'a> {
     /// says: the file's images are imported when a texture is first needed, and each is
     /// converted the first time it is used in that space.
     fn texture_of_image(&self, image: usize, srgb: bool, textures: &mut Textures) -> Result<usize> {
-        if textures.images.is_none() {
-            textures.images = Some(
-                gltf::import_images(self.doc, Some(self.base), self.buffers)
-                    .map_err(|e| self.bad("images", format!("cannot decode image: {e}")))?,
-            );
-        }
         if let Some(i) = textures.of_image[image][srgb as usize] {
             return Ok(i);
         }
-        let data = &textures.images.as_ref().expect("decoded above")[image];
-        let t = decode_texture(data, srgb).ok_or_else(|| {
-            self.bad(
-                &name_of("images", image, None),
-                format!("unsupported pixel format {:?}", data.format),
-            )
-        })?;
+        let at = name_of("images", image, None);
+        let Some(im) = self.doc.images().nth(image) else {
+            return Err(self.bad(&at, "does not exist"));
+        };
+        let at = name_of("images", image, im.name());
+        if textures.images[image].is_none() {
+            if let Some((w, h)) = self.encoded_dimensions(&im)?
+                && w as u64 * h as u64 > MAX_IMAGE_TEXELS
+            {
+                return Err(self.bad(
+                    &at,
+                    format!("{w}×{h} texels exceed the limit of {MAX_IMAGE_TEXELS} (16384²)"),
+                ));
+            }
+            let data = gltf::image::Data::from_source(im.source(), Some(self.base), self.buffers)
+                .map_err(|e| self.bad(&at, format!("cannot decode image: {e}")))?;
+            let texels = data.width as u64 * data.height as u64;
+            if texels > MAX_IMAGE_TEXELS {
+                return Err(self.bad(
+                    &at,
+                    format!(
+                        "{}×{} texels exceed the limit of {MAX_IMAGE_TEXELS} (16384²)",
+                        data.width, data.height
+                    ),
+                ));
+            }
+            textures.images[image] = Some(data);
+        }
+        let Some(data) = textures.images[image].as_ref() else {
+            return Err(self.bad(&at, "could not be decoded"));
+        };
+        let t = decode_texture(data, srgb)
+            .ok_or_else(|| self.bad(&at, format!("unsupported pixel format {:?}", data.format)))?;
         textures.list.push(t);
         let i = self.offsets.textures + textures.list.len() - 1;
         textures.of_image[image][srgb as usize] = Some(i);
         Ok(i)
+    }
+
+    /// The width and height an image's header declares, read before it is decoded so that
+    /// an oversized image is refused without allocating its texels; `None` where the header
+    /// cannot be read (decoding then reports the error).
+    fn encoded_dimensions(&self, im: &gltf::Image<'_>) -> Result<Option<(u32, u32)>> {
+        let at = name_of("images", im.index(), im.name());
+        let owned;
+        let bytes: &[u8] = match im.source() {
+            gltf::image::Source::View { view, .. } => {
+                let data = &self.buffers[view.buffer().index()].0;
+                match view
+                    .offset()
+                    .checked_add(view.length())
+                    .and_then(|end| data.get(view.offset()..end))
+                {
+                    Some(b) => b,
+                    None => return Ok(None),
+                }
+            }
+            gltf::image::Source::Uri { uri, .. } => {
+                if let Some(rest) = uri.strip_prefix("data:") {
+                    let Some((_, b64)) = rest.split_once(";base64,") else {
+                        return Ok(None);
+                    };
+                    let Some(b) = base64_decode(b64) else {
+                        return Ok(None);
+                    };
+                    owned = b;
+                } else {
+                    let file = self.base.join(urlencoding_decode(uri));
+                    owned = read_limited(&file, &at, MAX_RESOURCE_BYTES)?;
+                }
+                &owned
+            }
+        };
+        Ok(image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .ok()
+            .and_then(|r| r.into_dimensions().ok()))
     }
 
     /// Reads `meshes` (glTF 2.0 §3.7.2) whose primitives use this file's `materials`; also
@@ -891,9 +1017,16 @@ fn sampler_values(
 /// itself must hold `"static"` or `"dynamic"`.
 pub fn motion_tag(extras: &gltf::json::Extras) -> std::result::Result<Option<Motion>, String> {
     let Some(raw) = extras else { return Ok(None) };
-    let Ok(serde_json::Value::Object(map)) = serde_json::from_str::<serde_json::Value>(raw.get())
-    else {
-        return Ok(None);
+    let map = match serde_json::from_str::<serde_json::Value>(raw.get()) {
+        Ok(serde_json::Value::Object(map)) => map,
+        // The crate parsed these extras, so only a limit of serde_json's (nesting deeper than
+        // 128 levels) fails here: a motion tag there must not be dropped silently.
+        Err(e) if raw.get().contains(&format!("\"{MOTION_KEY}\"")) => {
+            return Err(format!(
+                "the extras hold a \"{MOTION_KEY}\" key but cannot be read: {e}"
+            ));
+        }
+        _ => return Ok(None),
     };
     match map.get(MOTION_KEY) {
         None => Ok(None),
@@ -917,6 +1050,31 @@ fn misspelt_motion_key(extras: &gltf::json::Extras) -> Option<String> {
     map.keys()
         .find(|k| k.to_lowercase().contains(MOTION_KEY))
         .cloned()
+}
+
+/// Standard base64 (RFC 4648 §4, padding optional) as data URIs carry it; `None` if invalid.
+fn base64_decode(text: &str) -> Option<Vec<u8>> {
+    let mut out = Vec::with_capacity(text.len() / 4 * 3);
+    let (mut acc, mut bits) = (0u32, 0u32);
+    for c in text.bytes() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' => 62,
+            b'/' => 63,
+            b'=' => break,
+            _ => return None,
+        };
+        acc = (acc << 6) | v as u32;
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    Some(out)
 }
 
 /// Percent-decoding of relative URIs (glTF URIs are RFC 3986).
@@ -956,9 +1114,9 @@ fn check_accessors(
                 path,
                 name_of("bufferViews", v.index(), v.name()),
                 format!(
-                    "bytes {}..{} lie outside its buffer ({len} bytes)",
+                    "bytes {} + {} lie outside its buffer ({len} bytes)",
                     v.offset(),
-                    v.offset() + v.length()
+                    v.length()
                 ),
             ));
         }
@@ -968,16 +1126,19 @@ fn check_accessors(
         let elem = a.size();
         let stride = v.stride().unwrap_or(elem);
         let need = if a.count() == 0 {
-            0
+            Some(0)
         } else {
-            a.offset() + (a.count() - 1) * stride + elem
+            (a.count() - 1)
+                .checked_mul(stride)
+                .and_then(|n| n.checked_add(elem))
+                .and_then(|n| n.checked_add(a.offset()))
         };
-        if need > v.length() {
+        if need.is_none_or(|n| n > v.length()) {
             return Err(Error::input(
                 path,
                 name_of("accessors", a.index(), a.name()),
                 format!(
-                    "{} elements need {need} bytes but its buffer view holds {}",
+                    "{} elements need more bytes than its buffer view holds ({})",
                     a.count(),
                     v.length()
                 ),

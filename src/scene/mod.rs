@@ -14,6 +14,7 @@ pub mod anim;
 pub mod frame;
 pub mod gltf;
 pub mod material;
+pub mod validate;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

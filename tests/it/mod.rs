@@ -8,6 +8,7 @@ mod gpu;
 mod hardening;
 mod layout;
 mod lighting;
+mod malformed;
 mod materials;
 mod offsets;
 mod photons;
