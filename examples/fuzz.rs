@@ -290,26 +290,13 @@ pub fn check(dir: &Path, kind: Kind, bytes: &[u8]) -> Result<(), String> {
     let path = dir.join(file);
     std::fs::write(&path, bytes).map_err(|e| e.to_string())?;
     let result = std::panic::catch_unwind(AssertUnwindSafe(|| {
-        use anchorage::job::{Job, JobFile, LayerFile, Overrides};
+        use anchorage::job::{Job, JobFile, Overrides};
         let loaded = if job.is_some() {
             Job::load(&path, &Overrides::default())
         } else {
             let file = JobFile {
-                scene: vec![LayerFile {
-                    path: PathBuf::from(file),
-                    transform: Default::default(),
-                    tags: Default::default(),
-                    animations: None,
-                }],
-                camera: None,
                 resolution: [16, 16],
-                frames: None,
-                fps: 24.0,
-                frame_offset: 0.0,
-                output: None,
-                seed: 0,
-                render: Default::default(),
-                method: Default::default(),
+                ..JobFile::for_scene(PathBuf::from(file))
             };
             Job::from_file(&dir.join("job.json"), file, &Overrides::default())
         };
