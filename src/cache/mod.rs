@@ -509,17 +509,7 @@ mod tests {
         let p = CacheParams::default();
         // From inside the box straight down: the floor point under it, its normal up.
         let o = Vec3::new(0.45, 0.5, 0.1);
-        let hit = frame
-            .accel
-            .closest(
-                &frame.static_geometry,
-                &frame.dynamic_geometry,
-                o,
-                -Vec3::Y,
-                f32::INFINITY,
-            )
-            .unwrap();
-        let sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        let sp = crate::interaction::trace(&frame, o, -Vec3::Y).unwrap();
         assert!(sp.ns.y > 0.99, "the floor's side facing the box");
         let hits = gather::trace_strata(&frame, &sp, 7, &p);
         let lit = |_: &SurfacePoint| Vec3::ONE;
@@ -550,17 +540,7 @@ mod tests {
 
         // A record on the open floor is not enclosed: its rays hit the front of the box.
         let o = Vec3::new(1.0, 0.5, 0.1);
-        let hit = frame
-            .accel
-            .closest(
-                &frame.static_geometry,
-                &frame.dynamic_geometry,
-                o,
-                -Vec3::Y,
-                f32::INFINITY,
-            )
-            .unwrap();
-        let sp = SurfacePoint::new(&frame, hit, o, -Vec3::Y);
+        let sp = crate::interaction::trace(&frame, o, -Vec3::Y).unwrap();
         let hits = gather::trace_strata(&frame, &sp, 8, &p);
         let (strata, rad) = estimate_all(&[0.05], vec![hits], &lit).remove(0);
         let open = finish_record(&sp, Motion::Static, 8, 0.05, strata, &rad, &p, 0);

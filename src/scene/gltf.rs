@@ -355,28 +355,14 @@ impl<'a> Reader<'a> {
     fn material(&mut self, m: &gltf::Material<'_>, textures: &mut Textures) -> Result<Material> {
         let at = name_of("materials", m.index().unwrap_or(0), m.name());
         let pbr = m.pbr_metallic_roughness();
-        let base_color_texture = match pbr.base_color_texture() {
-            Some(info) => Some(self.texture_ref(
-                &at,
-                Slot::BaseColor,
-                &info.texture(),
-                info.tex_coord(),
-                Ok(info_transform(&info)),
-                textures,
-            )?),
-            None => None,
-        };
-        let emissive_texture = match m.emissive_texture() {
-            Some(info) => Some(self.texture_ref(
-                &at,
-                Slot::Emissive,
-                &info.texture(),
-                info.tex_coord(),
-                Ok(info_transform(&info)),
-                textures,
-            )?),
-            None => None,
-        };
+        let base_color_texture = pbr
+            .base_color_texture()
+            .map(|info| self.info_ref(&at, Slot::BaseColor, &info, textures))
+            .transpose()?;
+        let emissive_texture = m
+            .emissive_texture()
+            .map(|info| self.info_ref(&at, Slot::Emissive, &info, textures))
+            .transpose()?;
         let normal_texture = match m.normal_texture() {
             Some(n) => {
                 if !n.scale().is_finite() {
@@ -455,6 +441,25 @@ impl<'a> Reader<'a> {
     /// (`transform`: the extension read, if present, or what is wrong with it), whose
     /// `texCoord` overrides the reference's. Every texture reads `TEXCOORD_0`; another set
     /// is read as set 0 with a warning.
+    /// [`Self::texture_ref`] for a plain `textureInfo` (base colour, emission).
+    fn info_ref(
+        &mut self,
+        at: &str,
+        slot: Slot,
+        info: &gltf::texture::Info<'_>,
+        textures: &mut Textures,
+    ) -> Result<TextureRef> {
+        let transform = Ok(info_transform(info));
+        self.texture_ref(
+            at,
+            slot,
+            &info.texture(),
+            info.tex_coord(),
+            transform,
+            textures,
+        )
+    }
+
     fn texture_ref(
         &mut self,
         at: &str,
