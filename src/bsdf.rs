@@ -254,6 +254,26 @@ impl Bsdf {
         })
     }
 
+    /// Samples the glossy lobe alone (its visible normals): the direction, the glossy BRDF
+    /// there and the density. `None` without a glossy lobe or below the surface.
+    pub fn sample_glossy(&self, n: Vec3, wo: Vec3, u: [f32; 2]) -> Option<(Vec3, Vec3, f32)> {
+        let no = n.dot(wo);
+        if !(no > 0.0) || !self.has_glossy() {
+            return None;
+        }
+        let (t, b) = basis(n);
+        let local = Vec3::new(wo.dot(t), wo.dot(b), no);
+        let m = sample_vndf(local, self.alpha, u[0], u[1]);
+        let m = t * m.x + b * m.y + n * m.z;
+        let wi = (m * (2.0 * wo.dot(m)) - wo).normalize_or_zero();
+        if !(n.dot(wi) > 0.0) {
+            return None;
+        }
+        let pdf = self.vndf_pdf(n, wo, wi, no);
+        let f = self.eval(n, wo, wi).glossy;
+        (pdf > 0.0 && pdf.is_finite()).then_some((wi, f, pdf))
+    }
+
     /// Directional albedo for light leaving towards `wo` with `n·wo = cos_o`: the fraction
     /// of uniform incident radiance each lobe reflects (∫ f cos θi dωi).
     pub fn albedo(&self, cos_o: f32) -> Lobes {
@@ -417,9 +437,8 @@ impl Tables {
         let (i, s) = locate(mu);
         let (j, t) = locate(roughness);
         let at = |i: usize, j: usize| self.spec[i * TABLE + j];
-        let lerp = |a: [f32; 2], b: [f32; 2], w: f32| {
-            [a[0] + (b[0] - a[0]) * w, a[1] + (b[1] - a[1]) * w]
-        };
+        let lerp =
+            |a: [f32; 2], b: [f32; 2], w: f32| [a[0] + (b[0] - a[0]) * w, a[1] + (b[1] - a[1]) * w];
         let top = lerp(at(i, j), at(i, j + 1), t);
         let bottom = lerp(at(i + 1, j), at(i + 1, j + 1), t);
         let v = lerp(top, bottom, s);
@@ -458,7 +477,11 @@ mod tests {
     use crate::sampling::Sampler;
 
     fn dir(theta: f32, phi: f32) -> Vec3 {
-        Vec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos())
+        Vec3::new(
+            theta.sin() * phi.cos(),
+            theta.sin() * phi.sin(),
+            theta.cos(),
+        )
     }
 
     /// ∫ f cos θi dωi by BRDF sampling with `n` samples.
@@ -513,22 +536,34 @@ mod tests {
                 .sum()
                 .x
         };
-        assert!((metal(0.1, 0.0) - 0.99).abs() < 0.015, "{}", metal(0.1, 0.0));
+        assert!(
+            (metal(0.1, 0.0) - 0.99).abs() < 0.015,
+            "{}",
+            metal(0.1, 0.0)
+        );
         // α = 1: D = 1/π and V = ½/(n·l + n·v), so at normal incidence
         // ∫ f cos = ∫₀¹ μ/(1 + μ) dμ = 1 − ln 2.
         let closed = 1.0 - std::f32::consts::LN_2;
-        assert!((metal(1.0, 0.0) - closed).abs() < 0.005, "{}", metal(1.0, 0.0));
+        assert!(
+            (metal(1.0, 0.0) - closed).abs() < 0.005,
+            "{}",
+            metal(1.0, 0.0)
+        );
         // A white dielectric loses nothing: its diffuse layer takes what the glossy one does
         // not reflect, at every roughness and angle.
         for &r in &[0.05f32, 0.5, 1.0] {
             for &theta in &[0.0f32, 0.8, 1.4] {
-                let a = sampled_albedo(&Bsdf::new(Vec3::ONE, 0.0, r, 1.0), dir(theta, 0.0), 1 << 15);
+                let a =
+                    sampled_albedo(&Bsdf::new(Vec3::ONE, 0.0, r, 1.0), dir(theta, 0.0), 1 << 15);
                 assert!((a.sum().x - 1.0).abs() < 0.01, "r {r} θ {theta}: {a:?}");
             }
         }
         // The Lambertian limit is exactly the base colour.
         let l = sampled_albedo(&Bsdf::lambertian(Vec3::splat(0.7)), dir(0.7, 0.0), 1 << 12);
-        assert!((l.diffuse.x - 0.7).abs() < 1e-3 && l.glossy == Vec3::ZERO, "{l:?}");
+        assert!(
+            (l.diffuse.x - 0.7).abs() < 1e-3 && l.glossy == Vec3::ZERO,
+            "{l:?}"
+        );
     }
 
     #[test]
@@ -537,8 +572,8 @@ mod tests {
         for i in 0..2000 {
             let r = s.get(i, 0);
             let b = Bsdf::new(Vec3::new(0.9, 0.5, 0.2), s.get(i, 1), r, 1.0);
-            let a = dir(s.get(i, 2) * 1.5, s.get(i, 3) * 6.28);
-            let c = dir(s.get(i, 4) * 1.5, s.get(i, 5) * 6.28);
+            let a = dir(s.get(i, 2) * 1.5, s.get(i, 3) * std::f32::consts::TAU);
+            let c = dir(s.get(i, 4) * 1.5, s.get(i, 5) * std::f32::consts::TAU);
             let (x, y) = (b.eval(Vec3::Z, a, c).sum(), b.eval(Vec3::Z, c, a).sum());
             assert!(
                 (x - y).abs().max_element() <= 1e-4 * x.max_element().max(1.0),
@@ -618,10 +653,9 @@ mod tests {
                     for a in 0..sub {
                         for c in 0..sub {
                             let z = (t as f32 + (a as f32 + 0.5) / sub as f32) / nt as f32;
-                            let phi = (p as f32 + (c as f32 + 0.5) / sub as f32) / np as f32
-                                * 2.0
-                                * PI
-                                - PI;
+                            let phi =
+                                (p as f32 + (c as f32 + 0.5) / sub as f32) / np as f32 * 2.0 * PI
+                                    - PI;
                             let rr = (1.0 - z * z).max(0.0).sqrt();
                             let w = Vec3::new(rr * phi.cos(), rr * phi.sin(), z);
                             sum += b.pdf(Vec3::Z, wo, w) as f64;
