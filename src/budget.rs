@@ -15,10 +15,10 @@ use crate::error::{Error, Result};
 use crate::job::{Job, Method};
 use crate::scene::Scene;
 
-/// Bytes per pixel: AOVs (beauty 16, direct and indirect 24, depth, anchor id and reshoot
-/// 12), the accumulators they are collected from (about as many), and the EXR encoder's
-/// per-channel copies with its compression buffers.
-const BYTES_PER_PIXEL: u64 = 52 + 64 + 120;
+/// Bytes per pixel: AOVs (beauty 16, direct and indirect 24, their diffuse and glossy parts
+/// 48, depth, anchor id and reshoot 12), the accumulators they are collected from (about as
+/// many), and the EXR encoder's per-channel copies with its compression buffers.
+const BYTES_PER_PIXEL: u64 = 100 + 112 + 216;
 /// Bytes per stored photon (position, normal, power; the kd-tree's copy and index) times the
 /// photons one emitted photon leaves in bright scenes.
 const BYTES_PER_PHOTON: u64 = (36 + 24) * 6;

@@ -1,16 +1,19 @@
 //! Where light meets a surface: the shading point a ray finds ([`SurfacePoint`]), tracing,
-//! and direct light from every light with shadow rays ([`direct_irradiance`]). Every
+//! and direct light from every light with shadow rays through the surface's BRDF
+//! ([`direct_light`], with multiple importance sampling of emitters and the BRDF). Every
 //! method builds on these, at camera hits and at final-gather hits alike.
 //!
 //! Units: pixel values are radiance in the scene's light units (glTF: candela for point and
 //! spot lights, lux for directional lights, nits for emission), so a point light of
-//! intensity `I` over a white Lambertian plane gives `I·cosθ/(π r²)`.
+//! intensity `I` over a white Lambertian plane (`KHR_materials_specular.specularFactor` 0)
+//! gives `I·cosθ/(π r²)`.
 
 use glam::{Vec2, Vec3, Vec4};
 
 use crate::accel::{
     Hit, SHADOW_EPSILON, barycentric, gamma, hit_point, interpolate, offset_ray_origin,
 };
+use crate::bsdf::{Bsdf, Lobes};
 use crate::geom::{Geometry, face_normal_area};
 use crate::sampling::Sampler;
 use crate::scene::frame::uniform_barycentric;
@@ -127,9 +130,31 @@ impl SurfacePoint {
         })
     }
 
-    /// Lambertian albedo: base colour factor × texture × vertex colour.
+    /// The reflectance photon look-ups and final-gather hits shade with, treating the surface
+    /// as Lambertian: the BRDF's hemispherical albedo, both lobes
+    /// ([`Bsdf::hemispherical_albedo`]; the base colour for a pure Lambertian). A glossy hit
+    /// seen by a gather ray reflects the right amount of light, spread evenly.
     pub fn albedo(&self, m: Materials) -> Vec3 {
-        m.materials[self.material as usize].albedo(self.uv, self.color, m.textures)
+        self.bsdf(m)
+            .hemispherical_albedo()
+            .sum()
+            .clamp(Vec3::ZERO, Vec3::ONE)
+    }
+
+    /// The BRDF here ([`crate::bsdf`]).
+    pub fn bsdf(&self, m: Materials) -> Bsdf {
+        m.materials[self.material as usize].bsdf(self.uv, self.color, m.textures)
+    }
+
+    /// The normal the BRDF is evaluated about for light leaving towards `wo`: the shading
+    /// normal, or the geometric one where `wo` lies below the shading normal's horizon
+    /// (interpolated and mapped normals can tilt past the viewer).
+    pub fn shading_normal(&self, wo: Vec3) -> Vec3 {
+        if self.ns.dot(wo) > 0.0 {
+            self.ns
+        } else {
+            self.ng
+        }
     }
 
     /// Emitted radiance towards the ray's origin (emissive texture included).
@@ -242,13 +267,15 @@ pub fn trace_camera(frame: &FrameScene, x: f32, y: f32) -> (Vec3, Option<Surface
     (r.dir, hit)
 }
 
-/// Irradiance at `x` from one punctual light, shadow ray included (`KHR_lights_punctual`).
-fn punctual_irradiance(
+/// Light from one punctual light at `x`, shadow ray included (`KHR_lights_punctual`): the
+/// direction towards it and the irradiance it gives a surface facing it; `None` where it is
+/// blocked, out of range or behind the surface.
+fn punctual_incident(
     frame: &FrameScene,
     x: &SurfacePoint,
     l: &PunctualLight,
     shadow_rays: &mut u64,
-) -> Vec3 {
+) -> Option<(Vec3, Vec3)> {
     let o = x.spawn();
     let (wi, dist, e) = match l.kind {
         LightKind::Directional => (-l.direction, f32::INFINITY, l.intensity),
@@ -257,7 +284,7 @@ fn punctual_irradiance(
             let r2 = d.length_squared();
             let r = r2.sqrt();
             if !(r > 0.0) || l.range.is_some_and(|range| r > range) {
-                return Vec3::ZERO;
+                return None;
             }
             let wi = d / r;
             let mut e = l.intensity / r2;
@@ -271,39 +298,84 @@ fn punctual_irradiance(
             (wi, r * (1.0 - 1e-6), e)
         }
     };
-    let cos = x.ns.dot(wi);
-    if cos <= 0.0 || x.ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
-        return Vec3::ZERO;
+    if x.ns.dot(wi) <= 0.0 || x.ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
+        return None;
     }
     *shadow_rays += 1;
     if frame
         .accel
         .occluded(&frame.static_geometry, &frame.dynamic_geometry, o, wi, dist)
     {
-        return Vec3::ZERO;
+        return None;
     }
-    e * cos
+    Some((wi, e))
 }
 
-/// Irradiance at `x` from all lights: punctual lights exactly, emissive triangles by
-/// `n` QMC samples (`sampler` indices `index·n ..`, dimensions `dim..dim+3`).
-pub fn direct_irradiance(
+/// The power heuristic with exponent 2 (Veach 1997) for a sample whose strategy had density
+/// `a` against another strategy's `b` (each already multiplied by its sample count).
+#[inline]
+pub fn power_heuristic(a: f32, b: f32) -> f32 {
+    if !(a > 0.0) {
+        return 0.0;
+    }
+    let r = b / a;
+    if !r.is_finite() {
+        return 0.0;
+    }
+    1.0 / (1.0 + r * r)
+}
+
+/// The solid-angle density with which one emitter sample from `x` picks the point `y` that a
+/// ray from `x` along `dir` found at `distance`, on emitter triangle `y.hit` (0 if it is not
+/// an emitter): the pick probability × r² / (area × |cos θy|).
+pub fn emitter_pdf(frame: &FrameScene, y: &SurfacePoint, dir: Vec3, distance: f32) -> f32 {
+    let Some((em, p_pick)) = frame.emitters.find(y.hit.motion, y.hit.triangle) else {
+        return 0.0;
+    };
+    let cos_y = y.ng.dot(dir).abs();
+    if !(cos_y > 0.0 && em.area > 0.0) {
+        return 0.0;
+    }
+    // r²/area first: scale-free, so neither tiny nor huge scenes leave f32's range.
+    p_pick * (distance / em.area.sqrt()).powi(2) / cos_y
+}
+
+/// How the direct light of emissive triangles is estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LightSampling {
+    /// Emitter samples only.
+    Lights,
+    /// Emitter samples and one BRDF sample, combined by multiple importance sampling.
+    Mis,
+}
+
+/// Direct light `x` reflects towards `wo` through `bsdf`, by lobe: punctual lights exactly,
+/// emissive triangles by `n` QMC samples (`sampler` indices `index·n ..`, dimensions
+/// `dim..dim+3`). With [`LightSampling::Mis`] each emitter sample is weighted by the power
+/// heuristic against one BRDF sample, which the caller adds ([`brdf_sampled_emission`] at a
+/// camera hit, the path's next vertex in the path tracer).
+#[allow(clippy::too_many_arguments)]
+pub fn direct_light(
     frame: &FrameScene,
     x: &SurfacePoint,
+    wo: Vec3,
+    bsdf: &Bsdf,
     sampler: &Sampler,
-    index: u32,
-    n: u32,
-    dim: u32,
+    (index, n, dim): (u32, u32, u32),
+    sampling: LightSampling,
     shadow_rays: &mut u64,
-) -> Vec3 {
-    let mut e = Vec3::ZERO;
+) -> Lobes {
+    let ns = x.shading_normal(wo);
+    let mut out = Lobes::ZERO;
     for l in &frame.lights {
-        e += punctual_irradiance(frame, x, l, shadow_rays);
+        if let Some((wi, e)) = punctual_incident(frame, x, l, shadow_rays) {
+            out += bsdf.eval(ns, wo, wi).scale(e * ns.dot(wi).max(0.0));
+        }
     }
-    if frame.emitters.list.is_empty() {
-        return e;
+    if frame.emitters.list.is_empty() || n == 0 {
+        return out;
     }
-    let mut area = Vec3::ZERO;
+    let mut area = Lobes::ZERO;
     for j in 0..n {
         let i = index * n + j;
         let Some((k, p_pick)) = frame.emitters.pick(sampler.get(i, dim)) else {
@@ -323,14 +395,14 @@ pub fn direct_irradiance(
             continue;
         };
         let (r, wi) = (seg.length, seg.dir);
-        let r2 = r * r;
-        if !(r2 > 0.0) {
-            continue;
-        }
-        let cos_x = x.ns.dot(wi);
+        let cos_x = ns.dot(wi);
         let cos_y = -ny.dot(wi);
         let cos_y = if em.double_sided { cos_y.abs() } else { cos_y };
-        if cos_x <= 0.0 || cos_y <= 0.0 || x.ng.dot(wi) <= 0.0 {
+        if cos_x <= 0.0 || cos_y <= 0.0 || x.ng.dot(wi) <= 0.0 || !(r > 0.0) {
+            continue;
+        }
+        let f = bsdf.eval(ns, wo, wi);
+        if f.sum() == Vec3::ZERO {
             continue;
         }
         *shadow_rays += 1;
@@ -343,10 +415,66 @@ pub fn direct_irradiance(
         ) {
             continue;
         }
-        // E = L_e cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
-        // neither tiny nor huge scenes leave f32's range: (area / r²) is scale-free.
+        // L_e f cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
+        // neither tiny nor huge scenes leave f32's range: area / r² is scale-free.
+        let ratio = (em.area.sqrt() / r).powi(2);
+        let weight = match sampling {
+            LightSampling::Lights => 1.0,
+            LightSampling::Mis => {
+                let p_light = n as f32 * p_pick / (ratio * cos_y);
+                power_heuristic(p_light, bsdf.pdf(ns, wo, wi))
+            }
+        };
         let l_e = frame.emitted_radiance(em, bc);
-        area += l_e * (cos_x * cos_y * (em.area / r2) / p_pick);
+        area += f.scale(l_e * (cos_x * cos_y * ratio / p_pick * weight));
     }
-    e + area / n as f32
+    out + area.scale(Vec3::splat(1.0 / n as f32))
+}
+
+/// The BRDF-sampled half of [`LightSampling::Mis`] at `x`: one direction drawn from `bsdf`
+/// with `u`; if its ray meets an emitter, the emission it reflects towards `wo`, weighted by
+/// the power heuristic against `n_light` emitter samples. Counts the ray in `rays`.
+#[allow(clippy::too_many_arguments)]
+pub fn brdf_sampled_emission(
+    frame: &FrameScene,
+    m: Materials,
+    x: &SurfacePoint,
+    wo: Vec3,
+    bsdf: &Bsdf,
+    u: [f32; 3],
+    n_light: u32,
+    rays: &mut u64,
+) -> Lobes {
+    if frame.emitters.list.is_empty() {
+        return Lobes::ZERO;
+    }
+    let ns = x.shading_normal(wo);
+    let Some(s) = bsdf.sample(ns, wo, u) else {
+        return Lobes::ZERO;
+    };
+    if x.ng.dot(s.wi) <= 0.0 {
+        return Lobes::ZERO;
+    }
+    *rays += 1;
+    let o = x.spawn();
+    let Some(h) = frame.accel.closest(
+        &frame.static_geometry,
+        &frame.dynamic_geometry,
+        o,
+        s.wi,
+        f32::INFINITY,
+    ) else {
+        return Lobes::ZERO;
+    };
+    if frame.emitters.find(h.motion, h.triangle).is_none() {
+        return Lobes::ZERO;
+    }
+    let y = SurfacePoint::new(frame, h, o, s.wi);
+    let l_e = y.emission(m);
+    if l_e == Vec3::ZERO {
+        return Lobes::ZERO;
+    }
+    let p_light = n_light as f32 * emitter_pdf(frame, &y, s.wi, h.t);
+    let w = power_heuristic(s.pdf, p_light);
+    s.f.scale(l_e * (ns.dot(s.wi) / s.pdf * w))
 }

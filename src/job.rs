@@ -302,6 +302,19 @@ pub struct MethodSettings {
     /// Photon bounces at most (Russian roulette ends most photon paths sooner). Default 64.
     #[schemars(range(min = 1, max = 1024))]
     pub photon_bounces: Option<u32>,
+    /// `path-trace`: how emissive triangles are sampled: `mis` (emitter and BRDF samples
+    /// combined), `lights` or `brdf` alone (for checking; all three converge to the same
+    /// image). Default `mis`.
+    pub path_sampling: Option<crate::integrator::path::PathSampling>,
+    /// Cached methods: glossy reflection rays per camera sample at hits whose roughness is
+    /// below `glossy_max_roughness`; 0 shades every glossy lobe from the cache. Default 2.
+    #[schemars(range(max = 32))]
+    pub glossy_rays: Option<u32>,
+    /// Cached methods: lobes narrower than this roughness are traced by `glossy_rays`;
+    /// wider ones are shaded from the irradiance cache through their albedo, in [0, 0.75].
+    /// Default 0.4.
+    #[schemars(range(min = 0, max = 0.75))]
+    pub glossy_max_roughness: Option<f32>,
     /// `anchors` settings (each key defaults as documented in README.md).
     pub anchors: Option<AnchorParams>,
 }
@@ -343,6 +356,15 @@ impl MethodSettings {
         if let Some(v) = self.photon_bounces {
             p.photon_bounces = v;
         }
+        if let Some(v) = self.path_sampling {
+            p.path_sampling = v;
+        }
+        if let Some(v) = self.glossy_rays {
+            p.glossy.rays = v;
+        }
+        if let Some(v) = self.glossy_max_roughness {
+            p.glossy.max_roughness = v;
+        }
         if let Some(v) = self.anchors {
             p.anchors = v;
         }
@@ -378,6 +400,15 @@ impl MethodSettings {
             && p.cache.max_spacing_px.is_finite())
         {
             return bad("min_spacing_px", "must be > 0 and <= max_spacing_px");
+        }
+        if p.glossy.rays > 32 {
+            return bad("glossy_rays", "must be 0..=32");
+        }
+        if !(0.0..=crate::integrator::MIS_ROUGHNESS).contains(&p.glossy.max_roughness) {
+            return bad(
+                "glossy_max_roughness",
+                "must be in [0, 0.75] (glossy rays rely on the direct light's BRDF samples there)",
+            );
         }
         if p.path_samples == 0 || p.path_samples > 1 << 20 {
             return bad("path_samples", "must be 1..=1048576");

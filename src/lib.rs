@@ -23,6 +23,7 @@
 
 pub mod accel;
 pub mod anchor;
+pub mod bsdf;
 pub mod budget;
 pub mod cache;
 pub mod color;

@@ -180,6 +180,18 @@ pub fn stage_exr(path: &Path, img: &FrameImage) -> Result<Staged> {
         ch("Z", img.depth.clone()),
     ];
     let mut channels = channels;
+    for (layer, v) in [
+        ("diffuse_direct", &img.diffuse_direct),
+        ("glossy_direct", &img.glossy_direct),
+        ("diffuse_indirect", &img.diffuse_indirect),
+        ("glossy_indirect", &img.glossy_indirect),
+    ] {
+        if v.len() == n {
+            for (c, name) in ["R", "G", "B"].iter().enumerate() {
+                channels.push(ch(&format!("{layer}.{name}"), plane(&|i| v[i][c])));
+            }
+        }
+    }
     if let Some(ids) = &img.anchor_id {
         channels.push(AnyChannel::new(
             "anchor_id.V",

@@ -121,6 +121,7 @@ pub fn render_frame(
             let tracer = PathTracer {
                 depth: params.path_depth,
                 light_samples: rs.light_samples,
+                sampling: params.path_sampling,
             };
             let r = path::render(&ctx, params.path_samples, &tracer);
             stats.timings_s.direct_lighting = start.elapsed().as_secs_f64();
@@ -140,6 +141,7 @@ pub fn render_frame(
     c.pixels = job.width as u64 * job.height as u64;
     c.camera_rays = rc.camera_rays;
     c.shadow_rays = rc.shadow_rays;
+    c.glossy_rays = rc.glossy_rays;
     let mem = &mut stats.memory;
     mem.geometry_static_bytes = fs.static_geometry.bytes() as u64;
     mem.geometry_dynamic_bytes = fs.dynamic_geometry.bytes() as u64;

@@ -36,7 +36,11 @@ pub struct Counts {
     pub emissive_triangles: u64,
     pub pixels: u64,
     pub camera_rays: u64,
+    /// Shadow rays, and the BRDF-sampled rays of direct light at glossy camera hits.
     pub shadow_rays: u64,
+    /// Glossy reflection rays traced at camera hits (cached methods).
+    #[serde(default)]
+    pub glossy_rays: u64,
     /// Photons stored this frame.
     pub photons: u64,
     /// Irradiance cache records in use this frame.

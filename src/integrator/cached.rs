@@ -13,6 +13,7 @@ use glam::Vec3;
 use super::anchors::AnchorStats;
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::anchor::{AnchorId, AnchorSet};
+use crate::bsdf::Lobes;
 use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
 use crate::geom::Motion;
 use crate::interaction::{Materials, SurfacePoint, trace_camera};
@@ -129,6 +130,7 @@ pub fn render(
         estimate,
         params: &params.cache,
         light_samples,
+        glossy: params.glossy,
     };
     let (img, rows) = super::render_pixels(ctx, spp, &shading);
     let wall = t.elapsed().as_secs_f64();
@@ -174,6 +176,27 @@ pub struct CachedShading<'a> {
     pub estimate: GatherEstimate<'a>,
     pub params: &'a CacheParams,
     pub light_samples: u32,
+    pub glossy: GlossyParams,
+}
+
+/// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7): lobes
+/// narrower than `max_roughness` by `rays` importance-sampled reflection rays per camera
+/// sample, each ending in the photon estimate at its hit; wider ones
+/// from the cache's irradiance through the lobe's directional albedo, like the diffuse lobe
+/// (exact for uniform incident light).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GlossyParams {
+    pub rays: u32,
+    pub max_roughness: f32,
+}
+
+impl Default for GlossyParams {
+    fn default() -> Self {
+        GlossyParams {
+            rays: 2,
+            max_roughness: 0.4,
+        }
+    }
 }
 
 /// Per-row state of the cached shading pass.
@@ -299,8 +322,9 @@ impl Shade for CachedShading<'_> {
     ) {
         let sp = &hit.sp;
         let t0 = Instant::now();
-        let f = hit.brdf(ctx);
-        let l_direct = hit.direct_light(ctx, f, self.light_samples, &mut row.counts.shadow_rays);
+        let bsdf = hit.bsdf(ctx);
+        let l_direct =
+            hit.direct_light(ctx, &bsdf, self.light_samples, &mut row.counts.shadow_rays);
         let t1 = Instant::now();
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
@@ -318,13 +342,67 @@ impl Shade for CachedShading<'_> {
             }
         };
         acc.note_cache(value.anchor_id, value.reshot);
+        let wo = hit.wo();
+        let ns = sp.shading_normal(wo);
+        let a = bsdf.albedo(ns.dot(wo));
+        let e = value.irradiance * FRAC_1_PI;
+        let traced =
+            self.glossy.rays > 0 && bsdf.has_glossy() && bsdf.roughness < self.glossy.max_roughness;
+        let glossy = if traced {
+            self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts)
+        } else {
+            a.glossy * e
+        };
         row.t_direct += (t1 - t0).as_secs_f64();
         row.t_interp += t1.elapsed().as_secs_f64();
         acc.hit(
             hit.depth(ctx),
             sp.emission(ctx.materials),
             l_direct,
-            f * value.irradiance,
+            Lobes {
+                diffuse: a.diffuse * e,
+                glossy,
+            },
         );
+    }
+}
+
+impl CachedShading<'_> {
+    /// The glossy lobe's indirect light at a camera hit by importance-sampled reflection
+    /// rays ([`GlossyParams`]): at each ray's hit, the photon estimate reflected by its
+    /// albedo, as at a final-gather hit. Emission the rays find is not counted: the direct
+    /// light's BRDF sample has it.
+    fn glossy_indirect(
+        &self,
+        ctx: &FrameContext,
+        hit: &CameraHit,
+        bsdf: &crate::bsdf::Bsdf,
+        ns: Vec3,
+        counts: &mut RenderCounts,
+    ) -> Vec3 {
+        let (sampler, s) = (hit.sampler, hit.sample);
+        let mut dims = super::shading_dims();
+        dims.take(super::DIRECT_DIMS);
+        let n = self.glossy.rays;
+        let mut sum = Vec3::ZERO;
+        for _ in 0..n {
+            let dim_dir = dims.take(2);
+            let u = [sampler.get(s, dim_dir), sampler.get(s, dim_dir + 1)];
+            let Some((wi, f, pdf)) = bsdf.sample_glossy(ns, hit.wo(), u) else {
+                continue;
+            };
+            if wi.dot(hit.sp.ng) <= 0.0 {
+                continue;
+            }
+            counts.glossy_rays += 1;
+            let Some(y) = crate::interaction::trace(ctx.scene, hit.sp.spawn(), wi) else {
+                continue;
+            };
+            // The photon estimate at the hit, as at a final-gather hit: it holds the direct
+            // light there too.
+            let l = self.estimate.radiance(&y, ctx.materials);
+            sum += f * l * (ns.dot(wi) / pdf);
+        }
+        sum / n as f32
     }
 }

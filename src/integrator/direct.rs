@@ -1,6 +1,6 @@
 //! `direct`: emission and direct light only, no indirect light.
 
-use glam::Vec3;
+use crate::bsdf::Lobes;
 
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade};
 
@@ -26,12 +26,12 @@ impl Shade for Direct {
     ) {
         let direct = hit.direct_light(
             ctx,
-            hit.brdf(ctx),
+            &hit.bsdf(ctx),
             self.light_samples,
             &mut counts.shadow_rays,
         );
         let emission = hit.sp.emission(ctx.materials);
-        acc.hit(hit.depth(ctx), emission, direct, Vec3::ZERO);
+        acc.hit(hit.depth(ctx), emission, direct, Lobes::ZERO);
     }
 }
 

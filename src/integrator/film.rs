@@ -4,6 +4,8 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::bsdf::Lobes;
+
 /// The AOVs of one frame, row-major, top row first.
 #[derive(Debug, Clone, Default)]
 pub struct FrameImage {
@@ -11,9 +13,17 @@ pub struct FrameImage {
     pub height: u32,
     /// Premultiplied RGBA: emission + direct (+ indirect, later), alpha = coverage.
     pub beauty: Vec<[f32; 4]>,
+    /// Light reflected once, towards the camera: `diffuse_direct + glossy_direct`.
     pub direct: Vec<[f32; 3]>,
-    /// Light reflected at least twice (final gather or path tracing); zero for `direct`.
+    /// Light reflected at least twice (final gather or path tracing); zero for `direct`:
+    /// `diffuse_indirect + glossy_indirect`.
     pub indirect: Vec<[f32; 3]>,
+    /// `direct` and `indirect` by the lobe of the camera hit's BRDF that reflected them
+    /// towards the camera ([`crate::bsdf::Lobes`]), as Blender names its passes.
+    pub diffuse_direct: Vec<[f32; 3]>,
+    pub glossy_direct: Vec<[f32; 3]>,
+    pub diffuse_indirect: Vec<[f32; 3]>,
+    pub glossy_indirect: Vec<[f32; 3]>,
     /// Camera-space depth along the view axis of the nearest hit; `f32::MAX` where nothing is hit.
     pub depth: Vec<f32>,
     /// Cached methods only (else `None`): `anchor_id` and `reshoot` AOVs, see [`Pixel`].
@@ -48,6 +58,8 @@ impl FrameImage {
 pub struct RenderCounts {
     pub camera_rays: u64,
     pub shadow_rays: u64,
+    /// Glossy reflection rays traced at camera hits (cached methods).
+    pub glossy_rays: u64,
 }
 
 /// One pixel's AOVs.
@@ -56,6 +68,10 @@ pub struct Pixel {
     pub beauty: [f32; 4],
     pub direct: [f32; 3],
     pub indirect: [f32; 3],
+    pub diffuse_direct: [f32; 3],
+    pub glossy_direct: [f32; 3],
+    pub diffuse_indirect: [f32; 3],
+    pub glossy_indirect: [f32; 3],
     pub depth: f32,
     /// Cached methods: id + 1 of the anchor feeding the first hit's dominant record (0: none).
     pub anchor_id: u32,
@@ -70,8 +86,8 @@ pub struct Pixel {
 #[derive(Debug, Clone, Copy)]
 pub struct Accumulator {
     emission: Vec3,
-    direct: Vec3,
-    indirect: Vec3,
+    direct: Lobes,
+    indirect: Lobes,
     hits: f32,
     depth: f32,
     anchor: Option<u32>,
@@ -86,8 +102,8 @@ impl Default for Accumulator {
     fn default() -> Self {
         Accumulator {
             emission: Vec3::ZERO,
-            direct: Vec3::ZERO,
-            indirect: Vec3::ZERO,
+            direct: Lobes::ZERO,
+            indirect: Lobes::ZERO,
             hits: 0.0,
             depth: f32::MAX,
             anchor: None,
@@ -101,7 +117,7 @@ impl Default for Accumulator {
 
 impl Accumulator {
     /// A camera sample that hit a surface at view-axis `depth`.
-    pub fn hit(&mut self, depth: f32, emission: Vec3, direct: Vec3, indirect: Vec3) {
+    pub fn hit(&mut self, depth: f32, emission: Vec3, direct: Lobes, indirect: Lobes) {
         self.hits += 1.0;
         self.depth = self.depth.min(depth);
         self.emission += emission;
@@ -110,7 +126,7 @@ impl Accumulator {
     }
 
     /// Adds radiance to a sample already counted by [`Accumulator::hit`].
-    pub fn add(&mut self, direct: Vec3, indirect: Vec3) {
+    pub fn add(&mut self, direct: Lobes, indirect: Lobes) {
         self.direct += direct;
         self.indirect += indirect;
     }
@@ -118,7 +134,10 @@ impl Accumulator {
     /// The beauty and indirect radiance summed so far, to be handed to
     /// [`Accumulator::end_sample`] once the next camera sample has been shaded.
     pub fn begin_sample(&self) -> (Vec3, Vec3) {
-        (self.emission + self.direct + self.indirect, self.indirect)
+        (
+            self.emission + self.direct.sum() + self.indirect.sum(),
+            self.indirect.sum(),
+        )
     }
 
     /// Ends a camera sample begun with `begun` ([`Accumulator::begin_sample`]): its radiance
@@ -147,7 +166,9 @@ impl Accumulator {
             let v = v * inv;
             if v.is_finite() { v } else { Vec3::ZERO }
         };
-        let (e, d, i) = (f(self.emission), f(self.direct), f(self.indirect));
+        let (dd, gd) = (f(self.direct.diffuse), f(self.direct.glossy));
+        let (di, gi) = (f(self.indirect.diffuse), f(self.indirect.glossy));
+        let (e, d, i) = (f(self.emission), dd + gd, di + gi);
         let b = e + d + i;
         // Sample variance of the samples (misses are samples of zero), over their number.
         let var = |sq: glam::DVec3, mean: Vec3| -> [f32; 3] {
@@ -169,6 +190,10 @@ impl Accumulator {
             beauty: [b.x, b.y, b.z, self.hits * inv],
             direct: d.to_array(),
             indirect: i.to_array(),
+            diffuse_direct: dd.to_array(),
+            glossy_direct: gd.to_array(),
+            diffuse_indirect: di.to_array(),
+            glossy_indirect: gi.to_array(),
             depth: self.depth,
             anchor_id: self.anchor.unwrap_or(0),
             reshoot: if self.cached > 0.0 {
@@ -202,6 +227,10 @@ pub fn render_rows<S: Default + Send>(
         beauty: Vec::with_capacity(n),
         direct: Vec::with_capacity(n),
         indirect: Vec::with_capacity(n),
+        diffuse_direct: Vec::with_capacity(n),
+        glossy_direct: Vec::with_capacity(n),
+        diffuse_indirect: Vec::with_capacity(n),
+        glossy_indirect: Vec::with_capacity(n),
         depth: Vec::with_capacity(n),
         anchor_id: Some(Vec::with_capacity(n)),
         reshoot: Some(Vec::with_capacity(n)),
@@ -217,6 +246,10 @@ pub fn render_rows<S: Default + Send>(
             img.beauty.push(p.beauty);
             img.direct.push(p.direct);
             img.indirect.push(p.indirect);
+            img.diffuse_direct.push(p.diffuse_direct);
+            img.glossy_direct.push(p.glossy_direct);
+            img.diffuse_indirect.push(p.diffuse_indirect);
+            img.glossy_indirect.push(p.glossy_indirect);
             img.depth.push(p.depth);
             ids.push(p.anchor_id);
             reshoot.push(p.reshoot);
@@ -242,6 +275,7 @@ impl RenderCounts {
             .fold(RenderCounts::default(), |a, c| RenderCounts {
                 camera_rays: a.camera_rays + c.camera_rays,
                 shadow_rays: a.shadow_rays + c.shadow_rays,
+                glossy_rays: a.glossy_rays + c.glossy_rays,
             })
     }
 }

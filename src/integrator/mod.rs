@@ -22,16 +22,17 @@ pub mod direct;
 pub mod film;
 pub mod path;
 
-use std::f32::consts::FRAC_1_PI;
-
 use clap::ValueEnum;
 use glam::Vec3;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::anchor::AnchorParams;
+use crate::bsdf::{Bsdf, Lobes};
 use crate::cache::CacheParams;
-use crate::interaction::{Materials, SurfacePoint, direct_irradiance, trace_camera};
+use crate::interaction::{
+    LightSampling, Materials, SurfacePoint, brdf_sampled_emission, direct_light, trace_camera,
+};
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::FrameScene;
 pub use film::{Accumulator, FrameImage, Pixel, PixelVariance, RenderCounts};
@@ -55,6 +56,10 @@ pub struct GiParams {
     /// `path-trace`: samples per pixel and maximum path length.
     pub path_samples: u32,
     pub path_depth: u32,
+    /// `path-trace`: which strategies light emissive triangles.
+    pub path_sampling: path::PathSampling,
+    /// Cached methods: the glossy lobe's indirect light at camera hits.
+    pub glossy: cached::GlossyParams,
 }
 
 /// Named speed/accuracy presets.
@@ -110,6 +115,8 @@ impl GiParams {
                 anchors: AnchorParams::default(),
                 path_samples: 64,
                 path_depth: DEPTH,
+                path_sampling: path::PathSampling::Mis,
+                glossy: cached::GlossyParams::default(),
             },
             Preset::Production => GiParams {
                 photons: 200_000,
@@ -120,6 +127,8 @@ impl GiParams {
                 anchors: AnchorParams::default(),
                 path_samples: 256,
                 path_depth: DEPTH,
+                path_sampling: path::PathSampling::Mis,
+                glossy: cached::GlossyParams::default(),
             },
             Preset::Final => GiParams {
                 photons: 800_000,
@@ -136,6 +145,8 @@ impl GiParams {
                 anchors: AnchorParams::default(),
                 path_samples: 1024,
                 path_depth: DEPTH,
+                path_sampling: path::PathSampling::Mis,
+                glossy: cached::GlossyParams::default(),
             },
         }
     }
@@ -180,32 +191,74 @@ impl CameraHit<'_> {
         ctx.scene.camera.depth(self.sp.position)
     }
 
-    /// The hit's Lambertian BRDF: albedo / π.
-    pub fn brdf(&self, ctx: &FrameContext) -> Vec3 {
-        self.sp.albedo(ctx.materials) * FRAC_1_PI
+    /// The hit's BRDF.
+    pub fn bsdf(&self, ctx: &FrameContext) -> Bsdf {
+        self.sp.bsdf(ctx.materials)
     }
 
-    /// Direct light the hit reflects towards the camera through its BRDF `f`
-    /// ([`CameraHit::brdf`]): f × the irradiance from every light, by shadow rays
-    /// (`light_samples` per emissive-triangle estimate).
+    /// Direction towards the camera.
+    pub fn wo(&self) -> Vec3 {
+        -self.dir
+    }
+
+    /// Direct light the hit reflects towards the camera through its BRDF, by lobe: punctual
+    /// lights exactly, emissive triangles by `light_samples` emitter samples, combined with
+    /// one BRDF sample by multiple importance sampling where the BRDF has a glossy lobe
+    /// narrower than [`MIS_ROUGHNESS`] (there emitter samples alone miss the highlight).
+    /// Counts shadow rays and the BRDF sample's ray in `shadow_rays`.
     pub fn direct_light(
         &self,
         ctx: &FrameContext,
-        f: Vec3,
+        bsdf: &Bsdf,
         light_samples: u32,
         shadow_rays: &mut u64,
-    ) -> Vec3 {
-        f * direct_irradiance(
+    ) -> Lobes {
+        let mut dims = shading_dims();
+        let (dim_light, dim_brdf) = (dims.take(3), dims.take(3));
+        let mis = bsdf.has_glossy() && bsdf.roughness < MIS_ROUGHNESS;
+        let sampling = if mis {
+            LightSampling::Mis
+        } else {
+            LightSampling::Lights
+        };
+        let mut l = direct_light(
             ctx.scene,
             &self.sp,
+            self.wo(),
+            bsdf,
             self.sampler,
-            self.sample,
-            light_samples,
-            shading_dims().take(3),
+            (self.sample, light_samples, dim_light),
+            sampling,
             shadow_rays,
-        )
+        );
+        if mis {
+            let u = [
+                self.sampler.get(self.sample, dim_brdf),
+                self.sampler.get(self.sample, dim_brdf + 1),
+                self.sampler.get(self.sample, dim_brdf + 2),
+            ];
+            l += brdf_sampled_emission(
+                ctx.scene,
+                ctx.materials,
+                &self.sp,
+                self.wo(),
+                bsdf,
+                u,
+                light_samples,
+                shadow_rays,
+            );
+        }
+        l
     }
 }
+
+/// Below this roughness the direct light of emissive triangles at camera hits adds a BRDF
+/// sample by multiple importance sampling.
+pub const MIS_ROUGHNESS: f32 = 0.75;
+
+/// Dimensions a camera hit's direct light uses from [`shading_dims`]: three for emitter
+/// samples, three for the BRDF sample.
+pub const DIRECT_DIMS: u32 = 6;
 
 /// What a method does with the camera samples of one pixel: its shade phase.
 pub trait Shade: Sync {

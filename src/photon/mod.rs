@@ -82,7 +82,7 @@ enum Source {
 
 /// Photon `index`'s samples: dimension `d` of the photons' sequence ([`Sampler::photons`]).
 /// Dimensions: [`DIM_LIGHT`] picks the light, four from [`DIM_EMIT`] place the photon on it,
-/// and each bounce takes three from [`DIM_BOUNCES`] (roulette, then the direction).
+/// and each bounce takes four from [`DIM_BOUNCES`] (roulette, then the BRDF sample).
 struct PhotonSamples {
     sampler: Sampler,
     index: u32,
@@ -408,18 +408,28 @@ fn trace_path(
             normal: sp.ng,
             power: flux,
         });
-        // Russian roulette by albedo (Jensen §5.3): survive with p = mean albedo.
-        let albedo = sp.albedo(m);
+        // Russian roulette by the directional albedo (Jensen §5.3): survive with p = its
+        // mean, then scatter by sampling the BRDF (glossy bounces included).
+        let wo = -dir;
+        let bsdf = sp.bsdf(m);
+        let ns = sp.shading_normal(wo);
+        let albedo = bsdf.albedo(ns.dot(wo)).sum();
         let p = ((albedo.x + albedo.y + albedo.z) / 3.0).clamp(0.0, 1.0);
-        let d = DIM_BOUNCES + 3 * bounce;
+        let d = DIM_BOUNCES + 4 * bounce;
         if s.get(d) >= p || p <= 0.0 {
             return;
         }
-        flux *= albedo / p;
-        dir = cosine_direction(sp.ns, s.get(d + 1).min(0.999_999_9), s.get(d + 2));
-        if dir.dot(sp.ng) <= 0.0 {
+        let Some(x) = bsdf.sample(ns, wo, [s.get(d + 1), s.get(d + 2), s.get(d + 3)]) else {
+            return;
+        };
+        if x.wi.dot(sp.ng) <= 0.0 {
             return;
         }
+        flux *= x.f.sum() * (ns.dot(x.wi) / (x.pdf * p));
+        if !flux.is_finite() || flux.max_element() <= 0.0 {
+            return;
+        }
+        dir = x.wi;
         o = sp.spawn();
     }
 }

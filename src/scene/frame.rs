@@ -361,6 +361,8 @@ pub struct Emitters {
     pub list: Vec<Emitter>,
     /// Cumulative, normalised power; `cdf[i]` is the probability of choosing `list[..=i]`.
     pub cdf: Vec<f32>,
+    /// Index in `list` of each emissive triangle, by set and triangle.
+    index: rustc_hash::FxHashMap<(Motion, u32), u32>,
 }
 
 impl Emitters {
@@ -418,7 +420,21 @@ impl Emitters {
                 (acc / total) as f32
             })
             .collect();
-        Emitters { list, cdf }
+        let index = list
+            .iter()
+            .enumerate()
+            .map(|(i, e)| ((e.motion, e.triangle), i as u32))
+            .collect();
+        Emitters { list, cdf, index }
+    }
+
+    /// The emitter on triangle `triangle` of set `motion` and the probability that
+    /// [`Emitters::pick`] chooses it, if it is one.
+    pub fn find(&self, motion: Motion, triangle: u32) -> Option<(&Emitter, f32)> {
+        let &i = self.index.get(&(motion, triangle))?;
+        let i = i as usize;
+        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
+        Some((&self.list[i], self.cdf[i] - lo))
     }
 
     /// Picks an emitter with probability proportional to its power: `(index, probability)`.

@@ -298,6 +298,7 @@ struct Textures {
 #[derive(Clone, Copy)]
 enum Slot {
     BaseColor,
+    MetallicRoughness,
     Emissive,
     Normal,
 }
@@ -306,13 +307,14 @@ impl Slot {
     fn key(self) -> &'static str {
         match self {
             Slot::BaseColor => "pbrMetallicRoughness.baseColorTexture",
+            Slot::MetallicRoughness => "pbrMetallicRoughness.metallicRoughnessTexture",
             Slot::Emissive => "emissiveTexture",
             Slot::Normal => "normalTexture",
         }
     }
 
     fn srgb(self) -> bool {
-        !matches!(self, Slot::Normal)
+        !matches!(self, Slot::Normal | Slot::MetallicRoughness)
     }
 }
 
@@ -358,6 +360,10 @@ impl<'a> Reader<'a> {
         let base_color_texture = pbr
             .base_color_texture()
             .map(|info| self.info_ref(&at, Slot::BaseColor, &info, textures))
+            .transpose()?;
+        let metallic_roughness_texture = pbr
+            .metallic_roughness_texture()
+            .map(|info| self.info_ref(&at, Slot::MetallicRoughness, &info, textures))
             .transpose()?;
         let emissive_texture = m
             .emissive_texture()
@@ -408,14 +414,28 @@ impl<'a> Reader<'a> {
                 "{at}: occlusionTexture is ignored (global illumination computes occlusion)"
             ));
         }
+        let mut specular = 1.0;
         if let Some(ext) = m.extensions() {
-            for name in ext.keys() {
+            for (name, value) in ext {
+                if name == "KHR_materials_specular" {
+                    specular = self.specular_factor(&at, value)?;
+                    continue;
+                }
                 self.warn(format_args!(
                     "{at}: {name} is not modelled; the material renders without it"
                 ));
                 if !self.reported.contains(name) {
                     self.reported.push(name.clone());
                 }
+            }
+        }
+        let (roughness, metallic) = (pbr.roughness_factor(), pbr.metallic_factor());
+        for (key, v) in [("roughnessFactor", roughness), ("metallicFactor", metallic)] {
+            if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
+                return Err(self.bad(
+                    &format!("{at}.pbrMetallicRoughness.{key}"),
+                    format!("{v} is outside [0, 1]"),
+                ));
             }
         }
         let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
@@ -431,9 +451,48 @@ impl<'a> Reader<'a> {
             emission,
             emissive_texture,
             double_sided: m.double_sided(),
-            roughness: pbr.roughness_factor(),
-            metallic: pbr.metallic_factor(),
+            roughness,
+            metallic,
+            metallic_roughness_texture,
+            specular,
         })
+    }
+
+    /// `KHR_materials_specular`: the dielectric specular factor is modelled (0 turns the
+    /// dielectric's glossy layer off, leaving a Lambertian); a specular colour or textures
+    /// are not, and are named in a warning.
+    fn specular_factor(&mut self, at: &str, value: &serde_json::Value) -> Result<f32> {
+        let key = format!("{at}.extensions.KHR_materials_specular");
+        let factor = match value.get("specularFactor") {
+            None => 1.0,
+            Some(v) => match v.as_f64() {
+                Some(f) if (0.0..=1.0).contains(&f) => f as f32,
+                _ => {
+                    return Err(self.bad(
+                        &format!("{key}.specularFactor"),
+                        "must be a number in [0, 1]",
+                    ));
+                }
+            },
+        };
+        let unmodelled: Vec<&str> = ["specularTexture", "specularColorTexture"]
+            .into_iter()
+            .filter(|k| value.get(*k).is_some())
+            .chain(
+                value
+                    .get("specularColorFactor")
+                    .and_then(|c| c.as_array())
+                    .filter(|c| c.iter().any(|v| v.as_f64() != Some(1.0)))
+                    .map(|_| "specularColorFactor"),
+            )
+            .collect();
+        if !unmodelled.is_empty() {
+            self.warn(format_args!(
+                "{key}: {} not modelled; only specularFactor is",
+                unmodelled.join(", ")
+            ));
+        }
+        Ok(factor)
     }
 
     /// Reads a texture reference of material `at` (glTF 2.0 §3.8): its image, decoded once

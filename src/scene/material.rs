@@ -1,9 +1,9 @@
 //! Materials as the algorithm needs them (DESIGN.md, Scene conventions): glTF
-//! metallic-roughness reduced to a Lambertian albedo (base colour factor × base colour
-//! texture × `COLOR_0`), alpha cut-out (`alphaMode` `MASK`; `BLEND` as a cut-out at 0.5),
-//! normal maps, emission (factor × emissive texture × `KHR_materials_emissive_strength`),
-//! `KHR_texture_transform` on every texture, and roughness/metallic kept for the glossy lobe
-//! of the paper's §5.
+//! metallic-roughness ([`Material::bsdf`]: base colour factor × base colour texture ×
+//! `COLOR_0`, metallic and roughness factors × `metallicRoughnessTexture`, the dielectric
+//! specular factor of `KHR_materials_specular`), alpha cut-out (`alphaMode` `MASK`; `BLEND`
+//! as a cut-out at 0.5), normal maps, emission (factor × emissive texture ×
+//! `KHR_materials_emissive_strength`), and `KHR_texture_transform` on every texture.
 //!
 //! [`Surfaces`] is the scene's material and texture list shared by every frame; it is also
 //! the [`AlphaTest`] the BVH traversal asks about hits on masked triangles, so that camera,
@@ -13,6 +13,7 @@ use std::sync::Arc;
 
 use glam::{Vec2, Vec3, Vec4};
 
+use crate::bsdf::Bsdf;
 use crate::geom::{AlphaTest, Geometry};
 
 /// Texture wrap modes (glTF `sampler.wrapS/wrapT`).
@@ -160,8 +161,13 @@ pub struct Material {
     pub emissive_texture: Option<TextureRef>,
     /// Emission from both faces (glTF `doubleSided`), else from the front face only.
     pub double_sided: bool,
+    /// `pbrMetallicRoughness.roughnessFactor` and `metallicFactor`.
     pub roughness: f32,
     pub metallic: f32,
+    /// Roughness in G, metallic in B (linear), multiplying the factors.
+    pub metallic_roughness_texture: Option<TextureRef>,
+    /// Dielectric specular factor (`KHR_materials_specular.specularFactor`, 1 without it).
+    pub specular: f32,
 }
 
 impl Default for Material {
@@ -178,6 +184,8 @@ impl Default for Material {
             double_sided: false,
             roughness: 1.0,
             metallic: 1.0,
+            metallic_roughness_texture: None,
+            specular: 1.0,
         }
     }
 }
@@ -199,6 +207,23 @@ impl Material {
         self.base_color_at(uv, color, textures)
             .truncate()
             .clamp(Vec3::ZERO, Vec3::ONE)
+    }
+
+    /// The BRDF at texture coordinate `uv` with vertex colour `color` (glTF 2.0 Appendix B,
+    /// [`crate::bsdf`]).
+    pub fn bsdf(&self, uv: Vec2, color: Vec4, textures: &[Texture]) -> Bsdf {
+        let (mut roughness, mut metallic) = (self.roughness, self.metallic);
+        if let Some(t) = self.metallic_roughness_texture {
+            let v = t.sample(textures, uv);
+            roughness *= v.y;
+            metallic *= v.z;
+        }
+        Bsdf::new(
+            self.base_color_at(uv, color, textures).truncate(),
+            metallic,
+            roughness,
+            self.specular,
+        )
     }
 
     /// Whether the surface is there at `uv` with vertex colour `color`: alpha (factor ×

@@ -143,7 +143,7 @@ fn an_occluder_that_comes_and_goes() {
         "nodes":[{{"name":"floor","mesh":0,"extras":{{"motion":"static"}}}},{{"name":"wall","mesh":1,"extras":{{"motion":"static"}}}},
                  {{"name":"plate","mesh":2,"translation":[1.6,0,30],"extras":{{"motion":"dynamic"}}}},
                  {{"name":"lamp","translation":[2.2,1.5,0],"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.8,0.8,0.8,1],"metallicFactor":0}},"doubleSided":true}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.8,0.8,0.8,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}},"doubleSided":true}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":3,"material":0}}]}},
                   {{"primitives":[{{"attributes":{{"POSITION":1}},"indices":3,"material":0}}]}},
                   {{"primitives":[{{"attributes":{{"POSITION":2}},"indices":3,"material":0}}]}}],

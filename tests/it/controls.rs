@@ -24,7 +24,7 @@ fn clip_scene(dir: &std::path::Path, camera: &str, animations: &str) -> std::pat
         "scenes":[{{"nodes":[0,1,2]}}],
         "nodes":[{{"name":"near","mesh":0}},{{"name":"far","mesh":1}},{{"name":"cam","camera":0}}],
         "cameras":[{camera}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}}}},
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}},
                      {{"pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1],"metallicFactor":0}},"emissiveFactor":[1,1,1],
                        "extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":4}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":2,"material":0}}]}},

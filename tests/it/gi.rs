@@ -51,7 +51,7 @@ fn furnace(
         r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["KHR_materials_emissive_strength"],"scenes":[{{"nodes":[0]}}],
         "nodes":[{{"name":"room","mesh":0}}],
         "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[{rho},{rho},{rho},1],"metallicFactor":0}},
-                      "emissiveFactor":[1,1,1],"extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":{le}}}}}}}],
+                      "emissiveFactor":[1,1,1],"extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":{le}}},"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
         "accessors":[{{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","min":[{},{},{}],"max":[{h},{h},{h}]}},
                      {{"bufferView":0,"byteOffset":96,"componentType":5125,"count":36,"type":"SCALAR"}}],

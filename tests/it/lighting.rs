@@ -32,7 +32,7 @@ fn plane_job(
         "extensions":{{"KHR_lights_punctual":{{"lights":[{light}]}}}},
         "scenes":[{{"nodes":[0,1]}}],
         "nodes":[{{"name":"plane","mesh":0}},{{"name":"light","translation":{light_pos:?},"rotation":{rotation:?},"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[{ALBEDO},{ALBEDO},{ALBEDO},1],"metallicFactor":0}}}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[{ALBEDO},{ALBEDO},{ALBEDO},1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
         "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-10,0,-10],"max":[10,0,10]}},
                      {{"bufferView":0,"byteOffset":48,"componentType":5125,"count":6,"type":"SCALAR"}}],

@@ -236,8 +236,8 @@ fn masked_quad_scene(g: &mut Gltf, alpha_mode: &str) -> String {
         r#"{},"scenes":[{{"nodes":[0,1,2]}}],
         "nodes":[{{"mesh":0}},{{"mesh":1}},{}],
         "meshes":[{{"primitives":[{floor}]}},{{"primitives":[{quad}]}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}}}},
-                     {{"name":"leaves","alphaMode":"{alpha_mode}","pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}}}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}},
+                     {{"name":"leaves","alphaMode":"{alpha_mode}","pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "samplers":[{{"wrapS":33071,"wrapT":33071}}],
         "textures":[{{"source":{img},"sampler":0}}]"#,
         sun_light(3.0),
@@ -372,7 +372,7 @@ fn vertex_colours_multiply_the_base_colour() {
     let body = format!(
         r#"{},"scenes":[{{"nodes":[0,1]}}],"nodes":[{{"mesh":0}},{}],
         "meshes":[{{"primitives":[{a},{b},{cq}]}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}}}}]"#,
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}]"#,
         sun_light(2.0),
         sun_node(0.0)
     );
@@ -431,7 +431,7 @@ fn normal_mapped_scene(g: &mut Gltf) -> String {
     format!(
         r#"{},"scenes":[{{"nodes":[0,1]}}],"nodes":[{{"mesh":0}},{}],
         "meshes":[{{"primitives":[{left},{right}]}}],
-        "materials":[{{"normalTexture":{{"index":0}},"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}}}}],
+        "materials":[{{"normalTexture":{{"index":0}},"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "textures":[{{"source":{img}}}]"#,
         sun_light(2.0),
         sun_node(PI / 6.0)
@@ -533,8 +533,8 @@ fn texture_transform_offset_and_scale_choose_the_texel() {
         "extensions":{{"KHR_lights_punctual":{{"lights":[{{"type":"directional","intensity":2}}]}}}},
         "scenes":[{{"nodes":[0,1]}}],"nodes":[{{"mesh":0}},{}],
         "meshes":[{{"primitives":[{left},{right}]}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}}}},
-                     {{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0,"extensions":{{"KHR_texture_transform":{{"offset":[0.75,0],"scale":[0.25,1]}}}}}},"metallicFactor":0}}}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}},
+                     {{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0,"extensions":{{"KHR_texture_transform":{{"offset":[0.75,0],"scale":[0.25,1]}}}}}},"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "samplers":[{{"wrapS":33071,"wrapT":33071}}],
         "textures":[{{"source":{img},"sampler":0}}]"#,
         sun_node(0.0)
@@ -607,7 +607,7 @@ fn emitter_scene(g: &mut Gltf, y: f32, up: bool, floor: bool) -> String {
         "materials":[{{"emissiveFactor":[1,1,1],"emissiveTexture":{{"index":0}},
                        "extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":2}}}},
                        "pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1]}}}},
-                     {{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}}}}],
+                     {{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "samplers":[{{"wrapS":33071,"wrapT":33071}}],
         "textures":[{{"source":{img},"sampler":0}}]"#
     )

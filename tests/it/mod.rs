@@ -4,6 +4,7 @@ mod cli;
 pub mod common;
 mod controls;
 mod gi;
+mod glossy;
 mod gpu;
 mod hardening;
 mod layout;

@@ -45,7 +45,7 @@ fn ground_gltf(ground: f32) -> String {
         "scenes":[{{"nodes":[0,1,2]}}],
         "nodes":[{{"name":"ground","mesh":0}},{{"name":"cube","mesh":1}},
                  {{"name":"light","translation":[-0.6,2,-0.2],"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.6,0.6,0.6,1],"metallicFactor":0}}}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.6,0.6,0.6,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":2,"material":0}}]}},
                   {{"primitives":[{{"attributes":{{"POSITION":1}},"indices":3,"material":0}}]}}],
         "accessors":[

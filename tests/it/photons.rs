@@ -93,7 +93,7 @@ fn sealed_box_job(dir: &std::path::Path, method: &str) -> anchorage::job::Job {
         "extensions":{{"KHR_lights_punctual":{{"lights":[{{"type":"point","intensity":1000}}]}}}},
         "scenes":[{{"nodes":[0,1]}}],
         "nodes":[{{"name":"room","mesh":0}},{{"name":"lamp","translation":[0,1,0],"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}}],
-        "materials":[{{"doubleSided":true,"pbrMetallicRoughness":{{"baseColorFactor":[0.7,0.7,0.7,1],"metallicFactor":0}}}}],
+        "materials":[{{"doubleSided":true,"pbrMetallicRoughness":{{"baseColorFactor":[0.7,0.7,0.7,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
         "accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":[-10,-10,-10],"max":[10,10,10]}},
                      {{"bufferView":0,"byteOffset":{plen},"componentType":5125,"count":{ilen},"type":"SCALAR"}}],
@@ -169,7 +169,7 @@ fn mesh_gltf(name: &str, pos: &[f32], idx: &[u32], light: Option<(&str, [f32; 4]
         r#"{{"asset":{{"version":"2.0"}},{ext}{lights}
         "scenes":[{{"nodes":{nodes}}}],
         "nodes":[{{"name":"{name}","mesh":0}}{light_node}],
-        "materials":[{{"doubleSided":true,"pbrMetallicRoughness":{{"baseColorFactor":[0.7,0.7,0.7,1],"metallicFactor":0}}}}],
+        "materials":[{{"doubleSided":true,"pbrMetallicRoughness":{{"baseColorFactor":[0.7,0.7,0.7,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}}],
         "accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":{:?},"max":{:?}}},
                      {{"bufferView":0,"byteOffset":{plen},"componentType":5125,"count":{},"type":"SCALAR"}}],

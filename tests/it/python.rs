@@ -138,7 +138,11 @@ fn blender_compositor_lists_every_aov() {
             "Combined",
             "Depth",
             "anchor_id",
+            "diffuse_direct",
+            "diffuse_indirect",
             "direct",
+            "glossy_direct",
+            "glossy_indirect",
             "indirect",
             "reshoot"
         ]

@@ -36,6 +36,16 @@ pub fn box_quads(lo: [f32; 3], hi: [f32; 3]) -> Vec<[[f32; 3]; 4]> {
 
 /// The glTF text of `prims` and `lights` (double-sided grey Lambertian materials).
 pub fn gltf(prims: &[Prim], lights: &[Light]) -> String {
+    gltf_with(prims, lights, |p| {
+        format!(
+            r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[{a},{a},{a},1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}},"doubleSided":true}}"#,
+            a = p.albedo
+        )
+    })
+}
+
+/// [`gltf`] with each prim's material given as glTF JSON by `material`.
+pub fn gltf_with(prims: &[Prim], lights: &[Light], material: impl Fn(&Prim) -> String) -> String {
     let mut bin: Vec<u8> = Vec::new();
     let mut accessors = Vec::new();
     let mut views = Vec::new();
@@ -111,10 +121,7 @@ pub fn gltf(prims: &[Prim], lights: &[Light]) -> String {
             r#"{{"bufferView":{vi},"componentType":5125,"count":{},"type":"SCALAR"}}"#,
             idx.len()
         ));
-        materials.push(format!(
-            r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[{a},{a},{a},1],"metallicFactor":0}},"doubleSided":true}}"#,
-            a = p.albedo
-        ));
+        materials.push(material(p));
         meshes.push(format!(
             r#"{{"primitives":[{{"attributes":{{"POSITION":{}}},"indices":{},"material":{}}}]}}"#,
             accessors.len() - 2,
