@@ -306,13 +306,23 @@ pub struct MethodSettings {
     /// combined), `lights` or `brdf` alone (for checking; all three converge to the same
     /// image). Default `mis`.
     pub path_sampling: Option<crate::integrator::path::PathSampling>,
-    /// Cached methods: glossy reflection rays per camera sample at hits whose roughness is
-    /// below `glossy_max_roughness`; 0 shades every glossy lobe from the cache. Default 2.
+    /// Cached methods: how moderately glossy lobes (roughness from
+    /// `glossy_specular_max_roughness` to `glossy_max_roughness`) gather their indirect light:
+    /// `bucketing` (anchor bucketing, paper §5.1; `anchors` only, the other methods sample)
+    /// or `importance` (reflection rays). Default `bucketing`.
+    pub glossy_mode: Option<crate::integrator::cached::GlossyMode>,
+    /// Cached methods: importance-sampled reflection rays per camera sample, for lobes
+    /// narrower than `glossy_specular_max_roughness` (and for moderately glossy ones in
+    /// `importance` mode). Default 2.
     #[schemars(range(max = 32))]
     pub glossy_rays: Option<u32>,
-    /// Cached methods: lobes narrower than this roughness are traced by `glossy_rays`;
-    /// wider ones are shaded from the irradiance cache through their albedo, in [0, 0.75].
-    /// Default 0.4.
+    /// Cached methods: below this roughness a glossy lobe is highly glossy and always gets
+    /// reflection rays. Default 0.35.
+    #[schemars(range(min = 0, max = 0.75))]
+    pub glossy_specular_max_roughness: Option<f32>,
+    /// Cached methods: lobes narrower than this roughness gather their indirect light at the
+    /// pixel; wider ones are shaded from the irradiance cache through their albedo; in
+    /// [0, 0.75]. Default 0.6.
     #[schemars(range(min = 0, max = 0.75))]
     pub glossy_max_roughness: Option<f32>,
     /// `anchors` settings (each key defaults as documented in README.md).
@@ -362,6 +372,12 @@ impl MethodSettings {
         if let Some(v) = self.glossy_rays {
             p.glossy.rays = v;
         }
+        if let Some(v) = self.glossy_mode {
+            p.glossy.mode = v;
+        }
+        if let Some(v) = self.glossy_specular_max_roughness {
+            p.glossy.specular_max_roughness = v;
+        }
         if let Some(v) = self.glossy_max_roughness {
             p.glossy.max_roughness = v;
         }
@@ -403,6 +419,12 @@ impl MethodSettings {
         }
         if p.glossy.rays > 32 {
             return bad("glossy_rays", "must be 0..=32");
+        }
+        if !(0.0..=p.glossy.max_roughness).contains(&p.glossy.specular_max_roughness) {
+            return bad(
+                "glossy_specular_max_roughness",
+                "must be in [0, glossy_max_roughness]",
+            );
         }
         if !(0.0..=crate::integrator::MIS_ROUGHNESS).contains(&p.glossy.max_roughness) {
             return bad(

@@ -69,8 +69,9 @@ enum Command {
         #[arg(long)]
         presets: Option<String>,
         /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..`, `error=..`,
-        /// `anchor_k=..` (`anchors.k_scale`) or `visibility=cpu,gpu`; each value runs as its
-        /// own variant of every method. Repeatable.
+        /// `anchor_k=..` (`anchors.k_scale`), `visibility=cpu,gpu`, `glossy=bucketing,importance`
+        /// (`glossy_mode`) or `glossy_rays=..`; each value runs as its own variant of every
+        /// method. Repeatable.
         #[arg(long)]
         vary: Vec<String>,
         /// The reference method.

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Writes room.gltf: a Cornell-like room lit by an emissive ceiling panel, with a static
+"""Writes room.gltf (and room_glossy.gltf, the same room with a polished floor and a gold
+cube): a Cornell-like room lit by an emissive ceiling panel, with a static
 tall block, a dynamic cube that slides and spins across the floor, and a camera that dollies
 in. Standard library only; run it to regenerate the committed file.
 
@@ -79,8 +80,8 @@ def box(cx, cz, sx, sy, sz, y0=0.0):
     ]
 
 
-def material(name, rgb, emission=None):
-    m = {"name": name, "pbrMetallicRoughness": {"baseColorFactor": rgb + [1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}}
+def material(name, rgb, emission=None, metallic=0.0, roughness=1.0):
+    m = {"name": name, "pbrMetallicRoughness": {"baseColorFactor": rgb + [1.0], "metallicFactor": metallic, "roughnessFactor": roughness}}
     if emission:
         m["emissiveFactor"] = [1.0, 1.0, 1.0]
         m["extensions"] = {"KHR_materials_emissive_strength": {"emissiveStrength": emission}}
@@ -88,65 +89,80 @@ def material(name, rgb, emission=None):
     return len(materials) - 1
 
 
-white = material("white", [0.73, 0.73, 0.73])
-red = material("red", [0.65, 0.05, 0.05])
-green = material("green", [0.12, 0.45, 0.15])
-blue = material("blue", [0.2, 0.3, 0.75])
-lamp = material("lamp", [0.78, 0.78, 0.78], emission=[17.0, 12.0, 4.0][0])
+def scene(glossy):
+    """The room's glTF; `glossy`: with a polished floor and a gold cube (room_glossy.gltf)."""
+    global buf, views, accessors, meshes, materials
+    buf = bytearray()
+    views, accessors, meshes, materials = [], [], [], []
+    white = material("white", [0.73, 0.73, 0.73])
+    red = material("red", [0.65, 0.05, 0.05])
+    green = material("green", [0.12, 0.45, 0.15])
+    blue = material("blue", [0.2, 0.3, 0.75])
+    lamp = material("lamp", [0.78, 0.78, 0.78], emission=[17.0, 12.0, 4.0][0])
+    if glossy:
+        # A polished floor (a dielectric of roughness 0.45) and a gold cube (roughness 0.4).
+        polished = material("polished floor", [0.6, 0.6, 0.6], roughness=0.45)
+        gold = material("gold", [1.0, 0.78, 0.34], metallic=1.0, roughness=0.4)
 
-W, H, D = 2.0, 3.0, 2.0  # half width, height, half depth
-walls = quads_mesh("walls", [
-    ([[-W, 0, -D], [W, 0, -D], [W, 0, D], [-W, 0, D]], [0, 1, 0]),       # floor
-    ([[-W, H, -D], [W, H, -D], [W, H, D], [-W, H, D]], [0, -1, 0]),      # ceiling
-    ([[-W, 0, -D], [W, 0, -D], [W, H, -D], [-W, H, -D]], [0, 0, 1]),     # back
-], white)
-left = quads_mesh("left_wall", [([[-W, 0, -D], [-W, 0, D], [-W, H, D], [-W, H, -D]], [1, 0, 0])], red)
-right = quads_mesh("right_wall", [([[W, 0, -D], [W, 0, D], [W, H, D], [W, H, -D]], [-1, 0, 0])], green)
-panel = quads_mesh("lamp", [([[-0.6, H - 0.01, -0.6], [0.6, H - 0.01, -0.6], [0.6, H - 0.01, 0.6], [-0.6, H - 0.01, 0.6]], [0, -1, 0])], lamp)
-block = quads_mesh("block", box(-0.8, -0.7, 0.9, 1.8, 0.9), white)
-cube = quads_mesh("cube", box(0.0, 0.0, 0.7, 0.7, 0.7, -0.35), blue)
+    W, H, D = 2.0, 3.0, 2.0  # half width, height, half depth
+    floor_quad = ([[-W, 0, -D], [W, 0, -D], [W, 0, D], [-W, 0, D]], [0, 1, 0])
+    walls = quads_mesh("walls", ([] if glossy else [floor_quad]) + [
+        ([[-W, H, -D], [W, H, -D], [W, H, D], [-W, H, D]], [0, -1, 0]),      # ceiling
+        ([[-W, 0, -D], [W, 0, -D], [W, H, -D], [-W, H, -D]], [0, 0, 1]),     # back
+    ], white)
+    left = quads_mesh("left_wall", [([[-W, 0, -D], [-W, 0, D], [-W, H, D], [-W, H, -D]], [1, 0, 0])], red)
+    right = quads_mesh("right_wall", [([[W, 0, -D], [W, 0, D], [W, H, D], [W, H, -D]], [-1, 0, 0])], green)
+    panel = quads_mesh("lamp", [([[-0.6, H - 0.01, -0.6], [0.6, H - 0.01, -0.6], [0.6, H - 0.01, 0.6], [-0.6, H - 0.01, 0.6]], [0, -1, 0])], lamp)
+    block = quads_mesh("block", box(-0.8, -0.7, 0.9, 1.8, 0.9), white)
+    cube = quads_mesh("cube", box(0.0, 0.0, 0.7, 0.7, 0.7, -0.35), gold if glossy else blue)
 
-# Animation: 2 s at 24 fps. The cube slides left to right and spins; the camera dollies in.
-times = [0.0, 1.0, 2.0]
-cube_t = [[1.1, 0.35, 0.9], [0.2, 0.35, 0.4], [-0.6, 0.35, 1.0]]
-cube_r = [[0, math.sin(a / 2), 0, math.cos(a / 2)] for a in (0.0, math.pi / 2, math.pi)]
-cam_t = [[0.0, 1.5, 6.5], [0.0, 1.5, 6.0], [0.3, 1.6, 5.6]]
-t_acc = add_accessor(times, "SCALAR", minmax=False)
-accessors[t_acc]["min"], accessors[t_acc]["max"] = [0.0], [2.0]
-samplers = [
-    {"input": t_acc, "output": add_accessor(cube_t, "VEC3"), "interpolation": "LINEAR"},
-    {"input": t_acc, "output": add_accessor(cube_r, "VEC4"), "interpolation": "LINEAR"},
-    {"input": t_acc, "output": add_accessor(cam_t, "VEC3"), "interpolation": "LINEAR"},
-]
-nodes = [
-    {"name": "room", "children": [1, 2, 3, 4, 5], "extras": {"motion": "static"}},
-    {"name": "walls", "mesh": walls},
-    {"name": "left_wall", "mesh": left},
-    {"name": "right_wall", "mesh": right},
-    {"name": "lamp", "mesh": panel},
-    {"name": "block", "mesh": block, "rotation": [0, math.sin(0.2), 0, math.cos(0.2)]},
-    {"name": "cube", "mesh": cube, "translation": cube_t[0], "extras": {"motion": "dynamic", "note": "slides and spins"}},
-    {"name": "camera", "camera": 0, "translation": cam_t[0]},
-]
-gltf = {
-    "asset": {"version": "2.0", "generator": "anchorage examples/room/make_room.py"},
-    "extensionsUsed": ["KHR_materials_emissive_strength"],
-    "scene": 0,
-    "scenes": [{"nodes": [0, 6, 7]}],
-    "nodes": nodes,
-    "meshes": meshes,
-    "materials": materials,
-    "cameras": [{"type": "perspective", "perspective": {"yfov": math.radians(38.0), "znear": 0.05, "aspectRatio": 4 / 3}}],
-    "animations": [{"name": "move", "samplers": samplers, "channels": [
-        {"sampler": 0, "target": {"node": 6, "path": "translation"}},
-        {"sampler": 1, "target": {"node": 6, "path": "rotation"}},
-        {"sampler": 2, "target": {"node": 7, "path": "translation"}},
-    ]}],
-    "accessors": accessors,
-    "bufferViews": views,
-    "buffers": [{"byteLength": len(buf), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(buf)).decode()}],
-}
+    # Animation: 2 s at 24 fps. The cube slides left to right and spins; the camera dollies in.
+    times = [0.0, 1.0, 2.0]
+    cube_t = [[1.1, 0.35, 0.9], [0.2, 0.35, 0.4], [-0.6, 0.35, 1.0]]
+    cube_r = [[0, math.sin(a / 2), 0, math.cos(a / 2)] for a in (0.0, math.pi / 2, math.pi)]
+    cam_t = [[0.0, 1.5, 6.5], [0.0, 1.5, 6.0], [0.3, 1.6, 5.6]]
+    t_acc = add_accessor(times, "SCALAR", minmax=False)
+    accessors[t_acc]["min"], accessors[t_acc]["max"] = [0.0], [2.0]
+    samplers = [
+        {"input": t_acc, "output": add_accessor(cube_t, "VEC3"), "interpolation": "LINEAR"},
+        {"input": t_acc, "output": add_accessor(cube_r, "VEC4"), "interpolation": "LINEAR"},
+        {"input": t_acc, "output": add_accessor(cam_t, "VEC3"), "interpolation": "LINEAR"},
+    ]
+    nodes = [
+        {"name": "room", "children": [1, 2, 3, 4, 5] + ([8] if glossy else []), "extras": {"motion": "static"}},
+        {"name": "walls", "mesh": walls},
+        {"name": "left_wall", "mesh": left},
+        {"name": "right_wall", "mesh": right},
+        {"name": "lamp", "mesh": panel},
+        {"name": "block", "mesh": block, "rotation": [0, math.sin(0.2), 0, math.cos(0.2)]},
+        {"name": "cube", "mesh": cube, "translation": cube_t[0], "extras": {"motion": "dynamic", "note": "slides and spins"}},
+        {"name": "camera", "camera": 0, "translation": cam_t[0]},
+    ]
+    if glossy:
+        nodes.append({"name": "floor", "mesh": quads_mesh("floor", [floor_quad], polished)})
+    gltf = {
+        "asset": {"version": "2.0", "generator": "anchorage examples/room/make_room.py"},
+        "extensionsUsed": ["KHR_materials_emissive_strength"],
+        "scene": 0,
+        "scenes": [{"nodes": [0, 6, 7]}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "materials": materials,
+        "cameras": [{"type": "perspective", "perspective": {"yfov": math.radians(38.0), "znear": 0.05, "aspectRatio": 4 / 3}}],
+        "animations": [{"name": "move", "samplers": samplers, "channels": [
+            {"sampler": 0, "target": {"node": 6, "path": "translation"}},
+            {"sampler": 1, "target": {"node": 6, "path": "rotation"}},
+            {"sampler": 2, "target": {"node": 7, "path": "translation"}},
+        ]}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": len(buf), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(buf)).decode()}],
+    }
+    return gltf
+
+
 here = os.path.dirname(os.path.abspath(__file__))
-with open(os.path.join(here, "room.gltf"), "w") as f:
-    json.dump(gltf, f, indent=1)
-    f.write("\n")
+for name, glossy in (("room.gltf", False), ("room_glossy.gltf", True)):
+    with open(os.path.join(here, name), "w") as f:
+        json.dump(scene(glossy), f, indent=1)
+        f.write("\n")

@@ -240,6 +240,19 @@ impl IrradianceCache {
         })
     }
 
+    /// The records valid at (x, n) (weight above 1/a), in index order.
+    pub fn valid_records(&self, x: Vec3, n: Vec3, a: f32) -> Vec<u32> {
+        let mut idx = Vec::new();
+        if self.records.is_empty() {
+            return idx;
+        }
+        self.grid.candidates(x, &mut idx);
+        idx.retain(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a);
+        idx.sort_unstable();
+        idx.dedup();
+        idx
+    }
+
     /// True if some record is valid at (x, n).
     pub fn covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
         if self.records.is_empty() {

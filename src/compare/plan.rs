@@ -4,6 +4,7 @@
 
 use clap::ValueEnum;
 
+use crate::integrator::cached::GlossyMode;
 use crate::error::{Error, Result};
 use crate::integrator::Preset;
 use crate::job::{Job, Method, VisibilityChoice};
@@ -50,10 +51,14 @@ pub enum Setting {
     Visibility(VisibilityChoice),
     /// Photons per anchor estimate as a multiple of `k`.
     AnchorK(f32),
+    /// How moderately glossy lobes gather (`glossy_mode`).
+    Glossy(GlossyMode),
+    /// Importance-sampled glossy rays per camera sample (`glossy_rays`).
+    GlossyRays(u32),
 }
 
-const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k= or visibility= \
-                        with comma-separated values";
+const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k=, visibility=, \
+                        glossy=bucketing|importance or glossy_rays= with comma-separated values";
 
 impl Plan {
     /// Parses and checks `flags` against `job`: every swept value is checked like a
@@ -152,7 +157,8 @@ impl Setting {
             .map(|v| {
                 let v = v.trim();
                 Setting::parse(key, v).ok_or_else(|| match key {
-                    "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" => {
+                    "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" | "glossy"
+                    | "glossy_rays" => {
                         format!("{v:?} is not a value of {key} ({SETTINGS})")
                     }
                     _ => format!("unknown setting {key:?}: {SETTINGS}"),
@@ -177,6 +183,12 @@ impl Setting {
                 "cpu" => VisibilityChoice::Cpu,
                 _ => return None,
             }),
+            "glossy" => Setting::Glossy(match v {
+                "bucketing" => GlossyMode::Bucketing,
+                "importance" => GlossyMode::Importance,
+                _ => return None,
+            }),
+            "glossy_rays" => Setting::GlossyRays(v.parse().ok()?),
             _ => return None,
         })
     }
@@ -190,6 +202,8 @@ impl Setting {
             Setting::Error(v) => m.error = Some(v),
             Setting::Visibility(v) => job.render.visibility = v,
             Setting::AnchorK(v) => m.anchors.get_or_insert_default().k_scale = v,
+            Setting::Glossy(v) => m.glossy_mode = Some(v),
+            Setting::GlossyRays(v) => m.glossy_rays = Some(v),
         }
     }
 
@@ -201,6 +215,9 @@ impl Setting {
             Setting::Error(v) => format!("error={v}"),
             Setting::Visibility(v) => format!("visibility={}", format!("{v:?}").to_lowercase()),
             Setting::AnchorK(v) => format!("anchor_k={v}"),
+            Setting::Glossy(GlossyMode::Bucketing) => "glossy=bucketing".into(),
+            Setting::Glossy(GlossyMode::Importance) => "glossy=importance".into(),
+            Setting::GlossyRays(v) => format!("glossy_rays={v}"),
         }
     }
 }

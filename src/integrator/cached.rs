@@ -11,6 +11,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::anchors::AnchorStats;
+use super::bucket::BucketParams;
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::bsdf::Lobes;
@@ -20,6 +21,7 @@ use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
+use serde::{Deserialize, Serialize};
 
 /// The photon-mapping methods that shade from the irradiance cache.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -127,6 +129,7 @@ pub fn render(
     let t = Instant::now();
     let shading = CachedShading {
         cache,
+        anchors: state.anchors.as_ref(),
         estimate,
         params: &params.cache,
         light_samples,
@@ -173,30 +176,61 @@ fn prepare_brute_force(
 /// interpolated from the cache at the pixel centre's surface.
 pub struct CachedShading<'a> {
     pub cache: &'a IrradianceCache,
+    /// `anchors`: the anchors, for bucketing.
+    pub anchors: Option<&'a AnchorSet>,
     pub estimate: GatherEstimate<'a>,
     pub params: &'a CacheParams,
     pub light_samples: u32,
     pub glossy: GlossyParams,
 }
 
-/// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7): lobes
-/// narrower than `max_roughness` by `rays` importance-sampled reflection rays per camera
-/// sample, each ending in the photon estimate at its hit; wider ones
-/// from the cache's irradiance through the lobe's directional albedo, like the diffuse lobe
-/// (exact for uniform incident light).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+/// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7). Lobes
+/// narrower than `specular_max_roughness` (highly glossy) get `rays` importance-sampled
+/// reflection rays per camera sample, each ending in the photon estimate at its hit; lobes up
+/// to `max_roughness` (moderately glossy) are gathered by `mode`: anchor bucketing (§5.1,
+/// [`super::bucket`]; `anchors` only, the other methods sample) or the same reflection
+/// rays; wider lobes are lit from the cache's irradiance through their directional albedo,
+/// like the diffuse lobe (exact for uniform incident light).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GlossyParams {
+    pub mode: GlossyMode,
     pub rays: u32,
+    pub specular_max_roughness: f32,
     pub max_roughness: f32,
+    pub bucket: BucketParams,
+}
+
+/// How moderately glossy lobes gather their indirect light.
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum GlossyMode {
+    /// Anchor bucketing (§5.1).
+    #[default]
+    Bucketing,
+    /// Importance-sampled reflection rays.
+    Importance,
 }
 
 impl Default for GlossyParams {
     fn default() -> Self {
         GlossyParams {
+            mode: GlossyMode::Bucketing,
             rays: 2,
-            max_roughness: 0.4,
+            specular_max_roughness: 0.35,
+            max_roughness: 0.6,
+            bucket: BucketParams::default(),
         }
     }
+}
+
+/// How a camera hit's glossy lobe gets its indirect light.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum GlossyPath {
+    Rays,
+    Bucket,
+    Cache,
 }
 
 /// Per-row state of the cached shading pass.
@@ -233,6 +267,8 @@ pub struct CachedPixel {
     index: u32,
     centre: Option<SurfacePoint>,
     last: Option<(SurfaceKey, Vec3, CacheValue)>,
+    /// The last bucketed glossy light, by surface.
+    bucketed: Option<(SurfaceKey, Vec3, Option<Vec3>)>,
 }
 
 impl CachedShading<'_> {
@@ -309,6 +345,7 @@ impl Shade for CachedShading<'_> {
             index: y * ctx.width + x,
             centre,
             last: None,
+            bucketed: None,
         }
     }
 
@@ -346,12 +383,27 @@ impl Shade for CachedShading<'_> {
         let ns = sp.shading_normal(wo);
         let a = bsdf.albedo(ns.dot(wo));
         let e = value.irradiance * FRAC_1_PI;
-        let traced =
-            self.glossy.rays > 0 && bsdf.has_glossy() && bsdf.roughness < self.glossy.max_roughness;
-        let glossy = if traced {
-            self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts)
-        } else {
-            a.glossy * e
+        let glossy = match self.glossy_path(&bsdf) {
+            GlossyPath::Cache => a.glossy * e,
+            GlossyPath::Rays => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
+            GlossyPath::Bucket => {
+                let b = match pixel.bucketed {
+                    Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
+                    _ => {
+                        let at = match &pixel.centre {
+                            Some(c) if Self::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
+                            _ => sp,
+                        };
+                        let v = self.bucketed(ctx, at, wo, value.irradiance, &mut row.counts);
+                        pixel.bucketed = Some((key, sp.ns, v));
+                        v
+                    }
+                };
+                match b {
+                    Some(v) => v,
+                    None => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
+                }
+            }
         };
         row.t_direct += (t1 - t0).as_secs_f64();
         row.t_interp += t1.elapsed().as_secs_f64();
@@ -368,6 +420,55 @@ impl Shade for CachedShading<'_> {
 }
 
 impl CachedShading<'_> {
+    /// Which way a BRDF's glossy lobe is lit ([`GlossyParams`]).
+    fn glossy_path(&self, bsdf: &crate::bsdf::Bsdf) -> GlossyPath {
+        let g = &self.glossy;
+        if !bsdf.has_glossy() || bsdf.roughness >= g.max_roughness {
+            return GlossyPath::Cache;
+        }
+        let bucket = bsdf.roughness >= g.specular_max_roughness
+            && g.mode == GlossyMode::Bucketing
+            && self.anchors.is_some();
+        if bucket {
+            GlossyPath::Bucket
+        } else if g.rays > 0 {
+            GlossyPath::Rays
+        } else {
+            GlossyPath::Cache
+        }
+    }
+
+    /// Anchor bucketing at `at` for light leaving towards `wo` ([`super::bucket`]); `None`
+    /// where no record is valid there.
+    fn bucketed(
+        &self,
+        ctx: &FrameContext,
+        at: &SurfacePoint,
+        wo: Vec3,
+        irradiance: Vec3,
+        counts: &mut RenderCounts,
+    ) -> Option<Vec3> {
+        let anchors = self.anchors?;
+        let bsdf = at.bsdf(ctx.materials);
+        let ns = at.shading_normal(wo);
+        let mut st = super::bucket::BucketStats::default();
+        let fallback = |y: &SurfacePoint| self.estimate.radiance(y, ctx.materials);
+        let v = super::bucket::glossy_indirect(
+            ctx.scene,
+            self.cache,
+            anchors,
+            at,
+            (wo, ns, &bsdf),
+            irradiance,
+            self.params.error,
+            &self.glossy.bucket,
+            &fallback,
+            &mut st,
+        );
+        counts.glossy_rays += st.rays;
+        v
+    }
+
     /// The glossy lobe's indirect light at a camera hit by importance-sampled reflection
     /// rays ([`GlossyParams`]): at each ray's hit, the photon estimate reflected by its
     /// albedo, as at a final-gather hit. Emission the rays find is not counted: the direct

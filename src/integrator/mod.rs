@@ -17,6 +17,7 @@
 //! like.
 
 pub mod anchors;
+pub mod bucket;
 pub mod cached;
 pub mod direct;
 pub mod film;
