@@ -4,9 +4,9 @@
 
 use clap::ValueEnum;
 
-use crate::integrator::cached::GlossyMode;
 use crate::error::{Error, Result};
 use crate::integrator::Preset;
+use crate::integrator::cached::GlossyMode;
 use crate::job::{Job, Method, VisibilityChoice};
 
 /// The `compare` flags that choose variants, as typed on the command line.
