@@ -298,3 +298,24 @@ fn anchor_bucketing_agrees_with_importance_sampling_on_a_moderately_glossy_sheet
         );
     }
 }
+
+/// The glossy example room (a polished floor, a gold cube) renders the same bytes on one and
+/// two threads with every glossy path: bucketing, reflection rays, and the cache.
+#[test]
+fn glossy_room_gives_the_same_bytes_with_one_and_two_threads() {
+    let dir = tempdir();
+    let job = dir.path().join("job.json");
+    for mode in ["bucketing", "importance"] {
+        std::fs::write(
+            &job,
+            format!(
+                r#"{{"scene":[{{"path":"{}"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},"render":{{"samples_per_pixel":2}},
+                "method":{{"name":"anchors","preset":"draft","glossy_mode":"{mode}"}}}}"#,
+                root().join("examples/room/room_glossy.gltf").display()
+            ),
+        )
+        .unwrap();
+        let names: Vec<String> = (4..=6).map(|f| format!("job.{f:04}.exr")).collect();
+        assert_same_bytes_with_1_and_2_threads(&job, &["--frames", "4-6"], &names);
+    }
+}
