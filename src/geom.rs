@@ -152,3 +152,21 @@ pub fn triangle(a: Vec3, b: Vec3, c: Vec3) -> Triangle {
         v2: Vec3A::from(c),
     }
 }
+
+/// Helper for tests: appends the quad `a b c d` (two triangles, flat normals facing along
+/// (b − a) × (c − a), material 0, prim 0) to `g`.
+#[cfg(test)]
+pub fn push_quad(g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3) {
+    for t in [triangle(a, b, c), triangle(a, c, d)] {
+        let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
+        g.triangles.push(t);
+        g.shading.push(TriangleShading {
+            normals: [n; 3],
+            uvs: [Vec2::ZERO; 3],
+            material: 0,
+            prim: 0,
+            masked: false,
+            attributes: NO_ATTRIBUTES,
+        });
+    }
+}

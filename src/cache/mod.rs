@@ -410,7 +410,7 @@ mod tests {
     use super::*;
     use crate::anchor::AnchorId;
     use crate::cache::gather::estimate_all;
-    use crate::geom::{Geometry, TriangleShading, triangle};
+    use crate::geom::Geometry;
 
     #[test]
     fn strata_fit_in_six_bytes_and_round_trip() {
@@ -430,27 +430,13 @@ mod tests {
         }
     }
     use crate::scene::{FrameScene, StaticSet};
-    use glam::Vec2;
+
+    use crate::geom::push_quad as quad;
 
     /// A floor (y = 0) and a wall (x = 0, height 1, long in z) whose face towards +x emits
     /// radiance 1 into the gather (the radiance estimate below). From the floor at distance
     /// d the wall's view factor is F = (1 − d/√(d² + 1))/2, so E = πF and
     /// dE/dd = −(π/2)/(d² + 1)^{3/2}.
-    fn quad(g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3) {
-        for t in [triangle(a, b, c), triangle(a, c, d)] {
-            let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
-            g.triangles.push(t);
-            g.shading.push(TriangleShading {
-                normals: [n; 3],
-                uvs: [Vec2::ZERO; 3],
-                material: 0,
-                prim: 0,
-                masked: false,
-                attributes: crate::geom::NO_ATTRIBUTES,
-            });
-        }
-    }
-
     fn scene() -> FrameScene {
         let mut g = Geometry::default();
         let l = 200.0;
@@ -511,7 +497,7 @@ mod tests {
         frame_of(g, Vec3::new(3.0, 2.0, 3.0))
     }
 
-    /// Issue 10 (contact): a static record on a floor that a prim now stands on gathers from
+    /// Contact regions: a static record on a floor that a prim now stands on gathers from
     /// inside the prim — every ray meets the back of a face, and the inside reflects nothing
     /// — so its irradiance is 0. Used at the visible floor beside the prim, it gave pixels
     /// of exactly zero indirect light that no statistic explained. Such a record is

@@ -561,26 +561,13 @@ fn trace_path(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geom::{Geometry, NO_ATTRIBUTES, TriangleShading, triangle};
+    use crate::geom::Geometry;
     use crate::scene::{FrameCamera, Material, PunctualLight, StaticSet, Surfaces};
     use glam::Vec4;
 
-    fn quad(g: &mut Geometry, a: Vec3, b: Vec3, c: Vec3, d: Vec3) {
-        for t in [triangle(a, b, c), triangle(a, c, d)] {
-            let n = Vec3::from((t.v1 - t.v0).cross(t.v2 - t.v0)).normalize();
-            g.triangles.push(t);
-            g.shading.push(TriangleShading {
-                normals: [n; 3],
-                uvs: [Vec2::ZERO; 3],
-                material: 0,
-                prim: 0,
-                masked: false,
-                attributes: NO_ATTRIBUTES,
-            });
-        }
-    }
+    use crate::geom::push_quad as quad;
 
-    /// Issue 10 (the dashed seam): a floor (y = 0, x ≥ 0) meeting a wall (x = 0, facing +x),
+    /// The example room's dashed seam, reduced: a floor (y = 0, x ≥ 0) meeting a wall (x = 0, facing +x),
     /// both black, under a sun shining along (−0.6, −0.8, 0) with irradiance 1 at normal
     /// incidence: the floor's irradiance is 0.8 and the wall's 0.6 everywhere, right up to
     /// the crease, and no photon bounces. Averaged along the crease, estimates next to it

@@ -220,8 +220,8 @@ fn a_plate_in_front_of_a_lit_wall_shadows_the_indirect_light_while_it_is_there()
 /// with the same normal and albedo, and only the shadow ray of §3.1 refuses them. Anchors
 /// must agree with brute force on the same caches within 15 % per tile (measured: pass from
 /// 5.8 %; without the shadow ray, 31 %). Not against the path tracer: brute force's own
-/// photon look-ups reach across the 2 cm fin on the shared back-wall plane (issue 10's light
-/// leaks), which is not what this test is about; what anchors add on top of it is.
+/// photon look-ups reach across the 2 cm fin on the shared back-wall plane (light leaks
+/// through it), which is not what this test is about; what anchors add on top of it is.
 #[test]
 fn anchors_across_a_thin_wall_are_not_reused() {
     let dir = tempdir();

@@ -1,4 +1,4 @@
-//! Materials users export every day (issue 10): alpha `MASK`/`BLEND` cut-outs, `COLOR_0`
+//! Materials users export every day: alpha `MASK`/`BLEND` cut-outs, `COLOR_0`
 //! vertex colours, normal maps, `KHR_texture_transform` and emissive textures. Each scene is a
 //! small glTF built here, rendered (or traced) and checked against a closed form.
 

@@ -1,5 +1,4 @@
-//! Ray offsets from floating-point error bounds and render-space precision (issue 10, "Ray
-//! offsets"): a horizon ground, a set far from the origin, and scenes from 1e-9 to 1e9 in
+//! Ray offsets from floating-point error bounds and render-space precision: a horizon ground, a set far from the origin, and scenes from 1e-9 to 1e9 in
 //! scale render like small ones at the origin; scales beyond what f32 can render are refused.
 
 use super::common::*;
@@ -86,7 +85,7 @@ fn shadowed(img: &FrameImage) -> usize {
         .count()
 }
 
-/// Regression (issue 10): a point light 2 units over a ±1e6 ground lost every shadow, the
+/// Regression: a point light 2 units over a ±1e6 ground lost every shadow, the
 /// ray offset (2^-17 × 1e6 = 7.6 units) lifting shadow rays over the 0.5-unit cube. The
 /// ±1e6 ground gives the same direct image as a ±10 one: every pixel within 1 % of its
 /// value (plus 1e-6 of the image's maximum, for pixels at zero), and the same shadow.
