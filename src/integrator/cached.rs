@@ -271,6 +271,22 @@ pub struct CachedPixel {
     bucketed: Option<(SurfaceKey, Vec3, Option<Vec3>)>,
 }
 
+impl CachedPixel {
+    /// Where the pixel's samples on surface `key` read the cache: the pixel centre's surface
+    /// point when the sample `sp` lies on that surface, facing the same way, else `sp`.
+    fn shading_point<'p>(
+        &'p self,
+        ctx: &FrameContext,
+        key: SurfaceKey,
+        sp: &'p SurfacePoint,
+    ) -> &'p SurfacePoint {
+        match &self.centre {
+            Some(c) if CachedShading::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
+            _ => sp,
+        }
+    }
+}
+
 impl CachedShading<'_> {
     fn key(ctx: &FrameContext, sp: &SurfacePoint) -> SurfaceKey {
         (
@@ -369,10 +385,7 @@ impl Shade for CachedShading<'_> {
         let value = match pixel.last {
             Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
             _ => {
-                let at = match &pixel.centre {
-                    Some(c) if Self::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
-                    _ => sp,
-                };
+                let at = pixel.shading_point(ctx, key, sp);
                 let v = self.lookup(ctx, at, pixel.index, row);
                 pixel.last = Some((key, sp.ns, v));
                 v
@@ -390,10 +403,7 @@ impl Shade for CachedShading<'_> {
                 let b = match pixel.bucketed {
                     Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
                     _ => {
-                        let at = match &pixel.centre {
-                            Some(c) if Self::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
-                            _ => sp,
-                        };
+                        let at = pixel.shading_point(ctx, key, sp);
                         let v = self.bucketed(ctx, at, wo, value.irradiance, &mut row.counts);
                         pixel.bucketed = Some((key, sp.ns, v));
                         v

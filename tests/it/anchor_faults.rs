@@ -19,7 +19,7 @@
 //! are in each test's doc).
 
 use super::common::*;
-use super::sets::{Light, Prim, box_quads, gltf};
+use super::sets::{Light, Prim, box_quads, gltf, room_quads};
 use super::stat::{Welch, assert_agrees};
 use anchorage::compare::Aov;
 use anchorage::integrator::FrameImage;
@@ -131,7 +131,7 @@ fn a_moving_light_reaches_the_indirect_light_through_re_estimated_anchors() {
     let text = gltf(
         &[Prim {
             name: "room",
-            quads: box_quads([-3.0, 0.0, -3.0], [3.0, 3.0, 3.0]),
+            quads: room_quads([-3.0, 0.0, -3.0], [3.0, 3.0, 3.0]),
             albedo: 0.6,
             motion: "static",
             keys: vec![],
@@ -332,7 +332,7 @@ fn importance_shrinks_d_max_where_gathers_land() {
     let text = gltf(
         &[Prim {
             name: "corridor",
-            quads: box_quads([-1.5, 0.0, -12.0], [1.5, 2.5, 12.0]),
+            quads: room_quads([-1.5, 0.0, -12.0], [1.5, 2.5, 12.0]),
             albedo: 0.6,
             motion: "static",
             keys: vec![],

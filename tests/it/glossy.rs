@@ -3,7 +3,7 @@
 //! methods against the path tracer on a scene with a glossy floor.
 
 use super::common::*;
-use super::sets::{Prim, box_quads, gltf_with};
+use super::sets::{Prim, gltf_with, room_quads};
 use super::stat::{Welch, assert_agrees};
 use anchorage::compare::Aov;
 use anchorage::integrator::FrameImage;
@@ -140,12 +140,7 @@ fn a_metal_plane_under_a_point_light_matches_the_closed_form() {
 /// A grey room lit by a small emissive ceiling quad, with a metal sheet of `roughness` on
 /// the floor, and its emitter in view.
 fn glossy_room(roughness: f32) -> String {
-    // Wound inwards: the camera and the records are inside.
-    let inward = box_quads([-2.0, 0.0, -2.0], [2.0, 2.5, 2.0])
-        .into_iter()
-        .map(|[a, b, c, d]| [d, c, b, a])
-        .collect();
-    let room = prim("room", inward, 0.6);
+    let room = prim("room", room_quads([-2.0, 0.0, -2.0], [2.0, 2.5, 2.0]), 0.6);
     let sheet = prim("sheet", vec![quad_y(0.01, [-1.2, -1.5], [1.2, 0.5])], 0.9);
     let lamp = prim("lamp", vec![quad_y(2.45, [-0.4, -0.8], [0.4, 0.0])], 0.0);
     // A red panel on the left: the sheet reflects it on one side only.

@@ -49,9 +49,21 @@ fn exr_channels_and_values_read_back_with_openexr() {
             "R",
             "Z",
             "anchor_id.V",
+            "diffuse_direct.B",
+            "diffuse_direct.G",
+            "diffuse_direct.R",
+            "diffuse_indirect.B",
+            "diffuse_indirect.G",
+            "diffuse_indirect.R",
             "direct.B",
             "direct.G",
             "direct.R",
+            "glossy_direct.B",
+            "glossy_direct.G",
+            "glossy_direct.R",
+            "glossy_indirect.B",
+            "glossy_indirect.G",
+            "glossy_indirect.R",
             "indirect.B",
             "indirect.G",
             "indirect.R",
@@ -80,6 +92,28 @@ fn exr_channels_and_values_read_back_with_openexr() {
         assert_eq!(a[i], img.beauty[i][3], "A at {i}");
         assert_eq!(dg[i], img.direct[i][1], "direct.G at {i}");
         assert_eq!(z[i], img.depth[i], "Z at {i}");
+    }
+    // The lobes' layers hold the in-memory AOVs and sum to direct and indirect.
+    for (name, aov) in [
+        ("diffuse_direct", &img.diffuse_direct),
+        ("glossy_direct", &img.glossy_direct),
+        ("diffuse_indirect", &img.diffuse_indirect),
+        ("glossy_indirect", &img.glossy_indirect),
+    ] {
+        for (c, suffix) in ["R", "G", "B"].iter().enumerate() {
+            let plane = ch(&format!("{name}.{suffix}"));
+            for i in 0..plane.len() {
+                assert_eq!(plane[i], aov[i][c], "{name}.{suffix} at {i}");
+            }
+        }
+    }
+    for i in 0..img.beauty.len() {
+        for c in 0..3 {
+            let d = img.diffuse_direct[i][c] + img.glossy_direct[i][c];
+            let n = img.diffuse_indirect[i][c] + img.glossy_indirect[i][c];
+            assert!((d - img.direct[i][c]).abs() <= 1e-6 * img.direct[i][c].abs().max(1e-6));
+            assert!((n - img.indirect[i][c]).abs() <= 1e-6 * img.indirect[i][c].abs().max(1e-6));
+        }
     }
     assert!(r.iter().any(|&x| x > 0.0));
     // anchor_id is a 32-bit unsigned channel: exact integers, as many anchors as there are.

@@ -34,6 +34,15 @@ pub fn box_quads(lo: [f32; 3], hi: [f32; 3]) -> Vec<[[f32; 3]; 4]> {
     ]
 }
 
+/// The inside of an axis-aligned box: [`box_quads`] wound inwards, as a room's walls face the
+/// camera and the cache records inside it.
+pub fn room_quads(lo: [f32; 3], hi: [f32; 3]) -> Vec<[[f32; 3]; 4]> {
+    box_quads(lo, hi)
+        .into_iter()
+        .map(|[a, b, c, d]| [d, c, b, a])
+        .collect()
+}
+
 /// The glTF text of `prims` and `lights` (double-sided grey Lambertian materials).
 pub fn gltf(prims: &[Prim], lights: &[Light]) -> String {
     gltf_with(prims, lights, |p| {
