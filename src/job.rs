@@ -316,6 +316,14 @@ pub struct MethodSettings {
     /// `importance` mode). Default 2.
     #[schemars(range(max = 32))]
     pub glossy_rays: Option<u32>,
+    /// `anchors`, bucketing: `[M, N]` θ × φ cells of the hemisphere at a moderately glossy
+    /// pixel, each 1..=256. Default `[12, 48]`.
+    #[schemars(inner(range(min = 1, max = 256)))]
+    pub glossy_bucket_strata: Option<[u32; 2]>,
+    /// `anchors`, bucketing: a cell's bucket keeps the anchors nearer than its depth ×
+    /// (1 + this), in [0, 10]. Default 0.2.
+    #[schemars(range(min = 0, max = 10))]
+    pub glossy_bucket_offset: Option<f32>,
     /// Cached methods: below this roughness a glossy lobe is highly glossy and always gets
     /// reflection rays. Default 0.35.
     #[schemars(range(min = 0, max = 0.75))]
@@ -378,6 +386,12 @@ impl MethodSettings {
         if let Some(v) = self.glossy_specular_max_roughness {
             p.glossy.specular_max_roughness = v;
         }
+        if let Some(v) = self.glossy_bucket_strata {
+            p.glossy.bucket.strata = v;
+        }
+        if let Some(v) = self.glossy_bucket_offset {
+            p.glossy.bucket.offset = v;
+        }
         if let Some(v) = self.glossy_max_roughness {
             p.glossy.max_roughness = v;
         }
@@ -416,6 +430,12 @@ impl MethodSettings {
             && p.cache.max_spacing_px.is_finite())
         {
             return bad("min_spacing_px", "must be > 0 and <= max_spacing_px");
+        }
+        if p.glossy.bucket.strata.iter().any(|&s| s == 0 || s > 256) {
+            return bad("glossy_bucket_strata", "each must be 1..=256");
+        }
+        if !(0.0..=10.0).contains(&p.glossy.bucket.offset) {
+            return bad("glossy_bucket_offset", "must be in [0, 10]");
         }
         if p.glossy.rays > 32 {
             return bad("glossy_rays", "must be 0..=32");

@@ -363,3 +363,28 @@ fn anchor_bucketing_does_not_see_through_an_occluder() {
         Welch::biased(4, 0.1),
     );
 }
+
+/// Out-of-range glossy settings are input errors naming the key.
+#[test]
+fn glossy_settings_out_of_range_name_their_key() {
+    let dir = tempdir();
+    std::fs::write(dir.path().join("scene.gltf"), glossy_room(0.5)).unwrap();
+    for (extra, key) in [
+        (r#""glossy_bucket_strata":[0,8]"#, "glossy_bucket_strata"),
+        (r#""glossy_bucket_offset":-1"#, "glossy_bucket_offset"),
+        (r#""glossy_rays":33"#, "glossy_rays"),
+        (r#""glossy_max_roughness":0.9"#, "glossy_max_roughness"),
+        (
+            r#""glossy_specular_max_roughness":0.7,"glossy_max_roughness":0.5"#,
+            "glossy_specular_max_roughness",
+        ),
+    ] {
+        let e = job_from_json(
+            &dir.path().join("j.json"),
+            &format!(r#"{{"scene":[{{"path":"scene.gltf"}}],"method":{{{extra}}}}}"#),
+        )
+        .err()
+        .unwrap_or_else(|| panic!("{extra} accepted"));
+        assert!(e.to_string().contains(key), "{extra}: {e}");
+    }
+}
