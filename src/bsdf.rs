@@ -171,6 +171,9 @@ impl Bsdf {
         let x = schlick_weight(wo.dot(h));
         let diffuse = if self.c_diff == Vec3::ZERO {
             Vec3::ZERO
+        } else if self.specular == 0.0 {
+            // A pure Lambertian: no glossy layer takes any light.
+            self.c_diff * FRAC_1_PI
         } else {
             let t = tables();
             let lost = |mu: f32| 1.0 - self.specular * t.dielectric(mu, self.roughness);

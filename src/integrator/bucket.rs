@@ -135,7 +135,9 @@ pub fn glossy_indirect(
     }
     let o = at.spawn();
     let mut depth = vec![f32::INFINITY; cells];
-    let mut hits: Vec<Option<SurfacePoint>> = vec![None; cells];
+    // Each mapped cell's depth-ray hit and direction: a surface point is made only for the
+    // cells whose bucket turns out empty.
+    let mut hits: Vec<Option<(crate::accel::Hit, Vec3)>> = vec![None; cells];
     for j in 0..mm {
         for k in 0..nn {
             let c = (j * nn + k) as usize;
@@ -155,7 +157,7 @@ pub fn glossy_indirect(
                 f32::INFINITY,
             ) {
                 depth[c] = h.t;
-                hits[c] = Some(SurfacePoint::new(frame, h, o, d));
+                hits[c] = Some((h, d));
             }
         }
     }
@@ -203,9 +205,9 @@ pub fn glossy_indirect(
         }
         let l = if count[c] > 0 {
             sum[c] / count[c] as f32
-        } else if let Some(h) = &hits[c] {
+        } else if let Some((h, d)) = hits[c] {
             stats.fallbacks += 1;
-            fallback(h)
+            fallback(&SurfacePoint::new(frame, h, o, d))
         } else {
             Vec3::ZERO
         };

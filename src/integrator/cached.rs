@@ -411,7 +411,11 @@ impl Shade for CachedShading<'_> {
                 };
                 match b {
                     Some(v) => v,
-                    None => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
+                    // No record is valid here: reflection rays, or the cache if there are none.
+                    None if self.glossy.rays > 0 => {
+                        self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts)
+                    }
+                    None => a.glossy * e,
                 }
             }
         };
