@@ -3,6 +3,7 @@
 //! and its BVH are built once, before the first frame.
 
 use std::io::IsTerminal;
+use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::anchor::BYTES_PER_ANCHOR;
@@ -192,6 +193,46 @@ pub fn new_stats(job: &Job, frame: i32) -> FrameStats {
 /// A preview with more than this fraction of its pixels clipped gets a warning (once).
 const CLIPPED_WARNING: f32 = 0.2;
 
+/// A frame's files under their final names.
+pub struct WrittenFrame {
+    pub exr: PathBuf,
+    /// The fraction of the preview's pixels that clip and the exposure that would fit them
+    /// (`None` without a preview).
+    pub preview_fit: Option<output::PreviewExposure>,
+}
+
+/// Writes one frame atomically: the stats JSON, the optional PNG preview and the EXR are
+/// staged under temporary names and renamed together, the EXR last (an EXR under its final
+/// name means a whole frame). `stats.timings_s.output` is filled in before the stats are
+/// written.
+pub fn write_frame(
+    job: &Job,
+    frame: i32,
+    img: &FrameImage,
+    stats: &mut FrameStats,
+    preview: bool,
+) -> Result<WrittenFrame> {
+    let t_out = Instant::now();
+    let exr = job.frame_path(frame, "exr");
+    let staged_exr = output::stage_exr(&exr, img)?;
+    let mut files = Vec::new();
+    let mut preview_fit = None;
+    if preview {
+        let (png, fit) = output::stage_png(&job.frame_path(frame, "png"), img, job.exposure)?;
+        files.push(png);
+        preview_fit = Some(fit);
+    }
+    stats.timings_s.output = t_out.elapsed().as_secs_f64();
+    stats.timings_s.total += stats.timings_s.output;
+    files.insert(
+        0,
+        output::stage_json(&job.frame_path(frame, "json"), stats)?,
+    );
+    files.push(staged_exr);
+    output::commit(files)?;
+    Ok(WrittenFrame { exr, preview_fit })
+}
+
 /// Renders every frame of the job and writes EXR, stats JSON and (optionally) PNG per frame.
 /// The output directory is checked before the first frame renders.
 pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
@@ -223,39 +264,27 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
             stats.timings_s.static_bvh = static_time;
         }
         let img = render_frame(job, scene, &resources, &mut state, frame, &mut stats)?;
-        let t_out = Instant::now();
-        let exr = job.frame_path(frame, "exr");
-        let staged_exr = output::stage_exr(&exr, &img)?;
-        let mut files = Vec::new();
-        if opts.preview {
-            let (png, fit) = output::stage_png(&job.frame_path(frame, "png"), &img, job.exposure)?;
-            files.push(png);
-            if fit.clipped > CLIPPED_WARNING && !warned_clipping {
-                warned_clipping = true;
-                let msg = format!(
-                    "anchorage: warning: {:.0} % of frame {frame}'s preview clips at exposure \
-                     {:+}; --exposure {:+} puts its 99th-percentile luminance at white (the \
-                     EXRs are unaffected)",
-                    100.0 * fit.clipped,
-                    job.exposure,
-                    fit.suggested
-                );
-                match &bar {
-                    Some(b) => b.println(msg),
-                    None if opts.progress == Progress::Auto => eprintln!("{msg}"),
-                    None => {}
-                }
+        stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;
+        let written = write_frame(job, frame, &img, &mut stats, opts.preview)?;
+        if let Some(fit) = written.preview_fit
+            && fit.clipped > CLIPPED_WARNING
+            && !warned_clipping
+        {
+            warned_clipping = true;
+            let msg = format!(
+                "anchorage: warning: {:.0} % of frame {frame}'s preview clips at exposure \
+                 {:+}; --exposure {:+} puts its 99th-percentile luminance at white (the \
+                 EXRs are unaffected)",
+                100.0 * fit.clipped,
+                job.exposure,
+                fit.suggested
+            );
+            match &bar {
+                Some(b) => b.println(msg),
+                None if opts.progress == Progress::Auto => eprintln!("{msg}"),
+                None => {}
             }
         }
-        stats.timings_s.output = t_out.elapsed().as_secs_f64();
-        stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;
-        // The stats first and the EXR last: an EXR under its final name means a whole frame.
-        files.insert(
-            0,
-            output::stage_json(&job.frame_path(frame, "json"), &stats)?,
-        );
-        files.push(staged_exr);
-        output::commit(files)?;
         match &bar {
             Some(b) => {
                 b.set_message(format!("frame {frame}: {:.2} s", stats.timings_s.total));
@@ -270,7 +299,7 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
                 stats.counts.shadow_rays,
                 stats.counts.rays_shot,
                 stats.counts.caches,
-                exr.display()
+                written.exr.display()
             ),
             None => {}
         }

@@ -5,7 +5,7 @@
 //! so that bad input is an [`Error::Input`] naming the file and the element at fault, never
 //! a panic, and converts the document into the renderer's own [`Layer`] description.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 use gltf::animation::util::ReadOutputs;
@@ -65,7 +65,7 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
     let (gltf, optional) = open(path)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let doc = &gltf.document;
-    check_files(path, doc, base)?;
+    let files = check_files(path, doc, base)?;
     let buffers = gltf::import_buffers(doc, Some(base), gltf.blob.clone())
         .map_err(|e| Error::input(path, "buffers", format!("cannot load buffer data: {e}")))?;
     check_accessors(path, doc, &buffers)?;
@@ -114,6 +114,7 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
             lights,
             cameras,
             degenerate_triangles,
+            files,
             warnings: r.warnings,
         },
         materials,
@@ -205,7 +206,8 @@ fn check_extensions(path: &Path, unchecked: &gltf::Gltf) -> Result<Vec<String>> 
 
 /// Checks that the files named by external buffer and image URIs (glTF 2.0 §3.6.1, §3.8.3)
 /// exist beside the glTF file, buffers first.
-fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
+fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
     for b in doc.buffers() {
         if let gltf::buffer::Source::Uri(uri) = b.source()
             && !uri.starts_with("data:")
@@ -231,6 +233,7 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
                     format!("buffer file {} not found", file.display()),
                 ));
             }
+            files.push(file);
         }
     }
     for im in doc.images() {
@@ -256,9 +259,10 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<()> {
                     ),
                 ));
             }
+            files.push(file);
         }
     }
-    Ok(())
+    Ok(files)
 }
 
 /// What gltf's reader yields for one morph target: position, normal and tangent displacements.

@@ -218,6 +218,8 @@ pub struct Layer {
     pub cameras: Vec<Camera>,
     /// Zero-area triangles dropped on load (reported as a warning).
     pub degenerate_triangles: usize,
+    /// The external files the layer's glTF refers to (buffers and images), resolved.
+    pub files: Vec<PathBuf>,
     pub warnings: Vec<String>,
 }
 
@@ -714,6 +716,14 @@ impl Scene {
             materials: materials.into(),
             textures: textures.into(),
             camera,
+        })
+    }
+
+    /// Every file the scene was read from: each layer's glTF, then the buffers and images it
+    /// refers to, in the order they were read.
+    pub fn files(&self) -> impl Iterator<Item = &Path> {
+        self.layers.iter().flat_map(|l| {
+            std::iter::once(l.path.as_path()).chain(l.files.iter().map(PathBuf::as_path))
         })
     }
 
