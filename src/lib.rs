@@ -15,7 +15,8 @@
 //!   see dynamic prims, §3.2);
 //! - [`integrator`]: the one pixel loop and the methods, Pseudocode 2 among them;
 //! - [`session`]: the state a frame hands to the next;
-//! - [`job`], [`stats`], [`output`], [`pipeline`] (the frame loop), [`inspect`] and
+//! - [`job`], [`stats`], [`output`], [`checkpoint`] (the state on disk), [`pipeline`] (the
+//!   frame loop), [`inspect`] and
 //!   [`compare`], driven by the thin `main`.
 
 // `!(x > 0.0)` is deliberate throughout: it rejects NaN as well as non-positive values.
@@ -26,6 +27,7 @@ pub mod anchor;
 pub mod bsdf;
 pub mod budget;
 pub mod cache;
+pub mod checkpoint;
 pub mod color;
 pub mod compare;
 pub mod error;

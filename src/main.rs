@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anchorage::job::{FrameRange, Job, Overrides, VisibilityChoice};
-use anchorage::pipeline::{self, Progress, RenderOptions};
+use anchorage::pipeline::{self, Progress, RenderOptions, StateOptions};
 use anchorage::{Error, compare, inspect};
 use clap::{Parser, Subcommand};
 
@@ -55,6 +55,22 @@ enum Command {
         /// No progress output.
         #[arg(long, short)]
         quiet: bool,
+        /// Start from a checkpoint written by `--state-out`: the state after the frame before
+        /// the range's first. The frames then equal those of a run that rendered through.
+        #[arg(long, value_name = "FILE", conflicts_with = "warmup")]
+        resume: Option<PathBuf>,
+        /// Render N frames before the range without writing them, so that it starts from a
+        /// warm state (a farm chunk that runs in parallel with the others; never before the
+        /// animation's first frame).
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        warmup: u32,
+        /// Write a checkpoint (NAME.####.state) to DIR after frames of the range.
+        #[arg(long, value_name = "DIR")]
+        state_out: Option<PathBuf>,
+        /// With --state-out: after every N-th frame of the range, and after its last.
+        #[arg(long, value_name = "N", default_value_t = 1, requires = "state_out",
+              value_parser = clap::value_parser!(u32).range(1..))]
+        state_every: u32,
     },
     /// Describe a scene (.gltf/.glb) or a job: prims with tags and why, lights, cameras, time range.
     Inspect { path: PathBuf },
@@ -167,6 +183,10 @@ fn run(cli: Cli) -> Result<(), Error> {
             exposure,
             memory_limit,
             quiet,
+            resume,
+            warmup,
+            state_out,
+            state_every,
         } => {
             let overrides = Overrides {
                 frames: frames.as_deref().map(parse_frames).transpose()?,
@@ -192,6 +212,12 @@ fn run(cli: Cli) -> Result<(), Error> {
                     Progress::Quiet
                 } else {
                     Progress::Auto
+                },
+                state: StateOptions {
+                    resume,
+                    warmup,
+                    out: state_out,
+                    every: state_every,
                 },
             };
             pipeline::render_job(&job, &scene, opts)?;

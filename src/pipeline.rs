@@ -8,12 +8,13 @@ use std::time::Instant;
 
 use crate::anchor::BYTES_PER_ANCHOR;
 use crate::cache::Stratum;
+use crate::checkpoint;
 use crate::error::{Error, Result};
 use crate::integrator::cached::{self, CachedMethod, CachedState};
 use crate::integrator::path::PathTracer;
 use crate::integrator::{FrameContext, FrameImage, direct, path};
 use crate::interaction::Materials;
-use crate::job::{Job, Method};
+use crate::job::{FrameRange, Job, Method};
 use crate::output;
 use crate::scene::{Scene, StaticSet};
 use crate::session::{FrameState, Resources};
@@ -28,10 +29,48 @@ pub enum Progress {
     Quiet,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct RenderOptions {
     pub preview: bool,
     pub progress: Progress,
+    pub state: StateOptions,
+}
+
+/// Where a render's state comes from and goes to: checkpoints and farm chunks (DESIGN.md,
+/// Shot state).
+#[derive(Debug, Clone, Default)]
+pub struct StateOptions {
+    /// Start from this checkpoint: the state after the frame before the first one rendered.
+    pub resume: Option<PathBuf>,
+    /// Render up to this many frames before the range, without writing them, so that the
+    /// range starts from a warm state (a farm chunk that runs in parallel with the others).
+    /// Never before the animation's first frame.
+    pub warmup: u32,
+    /// Write checkpoints to this directory ([`checkpoint::state_path`]).
+    pub out: Option<PathBuf>,
+    /// ...after every `every`-th frame of the range (1: every frame) and after its last.
+    pub every: u32,
+}
+
+impl StateOptions {
+    /// Whether the state after `frame` of `range` is written.
+    fn writes_after(&self, frame: i32, range: FrameRange) -> bool {
+        let every = i64::from(self.every.max(1));
+        self.out.is_some()
+            && (frame == range.end || (i64::from(frame) - i64::from(range.start) + 1) % every == 0)
+    }
+}
+
+/// The first frame a render of `job` renders: the range's start, or earlier by the warm-up,
+/// but not before the animation's first frame.
+pub fn first_frame(job: &Job, scene: &Scene, warmup: u32) -> i32 {
+    let start = job.frames.start;
+    let earliest = i64::from(start) - i64::from(warmup);
+    let earliest = match scene.time_range() {
+        Some((t0, t1)) => earliest.max(job.frames_in(t0, t1).0 as i64),
+        None => earliest,
+    };
+    earliest.clamp(i64::from(i32::MIN), i64::from(start)) as i32
 }
 
 /// Renders one frame in memory: the AOVs and the stats (no files written). `state` carries
@@ -242,7 +281,38 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
     let statics = scene.statics();
     let static_time = start.elapsed().as_secs_f64();
     let resources = with_statics(job, statics)?;
-    let frames: Vec<i32> = (job.frames.start..=job.frames.end).collect();
+    let so = &opts.state;
+    let hash = match (&so.resume, &so.out) {
+        (None, None) => None,
+        _ => Some(checkpoint::job_hash(job, scene)?),
+    };
+    if let Some(dir) = &so.out {
+        output::check_output_dir(dir)?;
+    }
+    let mut state = FrameState::default();
+    let first = match (&so.resume, hash) {
+        (Some(path), Some(hash)) => {
+            let p = job.method.params();
+            let strata = (p.cache.strata[0] * p.cache.strata[1]) as usize;
+            let (after, resumed) = checkpoint::read(path, hash, strata)?;
+            if i64::from(after) + 1 != i64::from(job.frames.start) {
+                return Err(Error::input(
+                    path,
+                    "frame",
+                    format!(
+                        "is the state after frame {after}; the range starts at frame {}, which \
+                         needs the state after frame {}",
+                        job.frames.start,
+                        i64::from(job.frames.start) - 1
+                    ),
+                ));
+            }
+            state = resumed;
+            job.frames.start
+        }
+        _ => first_frame(job, scene, so.warmup),
+    };
+    let frames: Vec<i32> = (first..=job.frames.end).collect();
     let bar = (opts.progress == Progress::Auto && std::io::stderr().is_terminal()).then(|| {
         let b = indicatif::ProgressBar::new(frames.len() as u64);
         b.set_style(
@@ -255,7 +325,6 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         b
     });
     let mut all = Vec::new();
-    let mut state = FrameState::default();
     let mut warned_clipping = false;
     for (i, &frame) in frames.iter().enumerate() {
         let t0 = Instant::now();
@@ -265,7 +334,33 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         }
         let img = render_frame(job, scene, &resources, &mut state, frame, &mut stats)?;
         stats.timings_s.total = t0.elapsed().as_secs_f64() + stats.timings_s.static_bvh;
+        if frame < job.frames.start {
+            // A warm-up frame: its state is what counts.
+            match &bar {
+                Some(b) => b.inc(1),
+                None if opts.progress == Progress::Auto => eprintln!(
+                    "anchorage: warm-up frame {frame} ({}/{}) {:.2} s, {} gather rays (not written)",
+                    i + 1,
+                    frames.len(),
+                    stats.timings_s.total,
+                    stats.counts.rays_shot,
+                ),
+                None => {}
+            }
+            continue;
+        }
         let written = write_frame(job, frame, &img, &mut stats, opts.preview)?;
+        // After the frame: a checkpoint never names a frame that is not on disk.
+        if let (Some(dir), Some(hash)) = (&so.out, hash)
+            && so.writes_after(frame, job.frames)
+        {
+            checkpoint::write(
+                &checkpoint::state_path(dir, job, frame),
+                hash,
+                frame,
+                &state,
+            )?;
+        }
         if let Some(fit) = written.preview_fit
             && fit.clipped > CLIPPED_WARNING
             && !warned_clipping

@@ -26,6 +26,20 @@ impl FrameState {
         postcard::to_stdvec(self).expect("frame state serialises: no map keys, no I/O")
     }
 
+    /// Checks a state read from disk for a render whose records have `strata` strata each:
+    /// every index it holds points into it, so that rendering from it cannot go out of
+    /// bounds.
+    pub fn check(&self, strata: usize) -> Result<(), String> {
+        let anchors = match &self.anchors {
+            Some(a) => {
+                a.check()?;
+                a.anchors.len()
+            }
+            None => 0,
+        };
+        self.cache.check(strata, anchors)
+    }
+
     /// The state from [`FrameState::encode`]'s bytes.
     pub fn decode(bytes: &[u8]) -> Result<FrameState, postcard::Error> {
         postcard::from_bytes(bytes)

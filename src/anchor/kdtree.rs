@@ -28,6 +28,25 @@ struct KdNode {
 const NIL: u32 = u32::MAX;
 
 impl KdTree {
+    /// Checks a tree read from disk over `items` items: the root is node 0, every child comes
+    /// after its parent (as [`KdTree::insert`] and [`KdTree::balanced`] build them, so that a
+    /// search ends), axes are 0..3 and items in range.
+    pub fn check(&self, items: usize) -> Result<(), String> {
+        if self.nodes.is_empty() {
+            return Ok(());
+        }
+        if self.root != 0 {
+            return Err(format!("anchor kd-tree root {} is not node 0", self.root));
+        }
+        for (i, n) in self.nodes.iter().enumerate() {
+            let child_ok = |c: u32| c == NIL || (c as usize > i && (c as usize) < self.nodes.len());
+            if !child_ok(n.left) || !child_ok(n.right) || n.axis > 2 || n.item as usize >= items {
+                return Err(format!("anchor kd-tree node {i} is malformed"));
+            }
+        }
+        Ok(())
+    }
+
     pub fn len(&self) -> usize {
         self.nodes.len()
     }

@@ -141,6 +141,22 @@ pub struct AnchorSet {
 pub const BYTES_PER_ANCHOR: usize = size_of::<Anchor>() + size_of::<u16>();
 
 impl AnchorSet {
+    /// Checks a set read from disk: every index it holds points into it.
+    pub fn check(&self) -> Result<(), String> {
+        let n = self.anchors.len();
+        if self.reach.len() != n {
+            return Err(format!("{} anchors but {} reaches", n, self.reach.len()));
+        }
+        if self.free.iter().any(|&f| f as usize >= n) {
+            return Err("a free anchor slot is out of range".into());
+        }
+        if self.photon_links.iter().flatten().any(|a| a.index() >= n) {
+            return Err("a photon links to an anchor that does not exist".into());
+        }
+        self.tree.check(n)?;
+        self.previous_photons.check()
+    }
+
     pub fn new(quantizer: Quantizer) -> Self {
         AnchorSet {
             anchors: Vec::new(),

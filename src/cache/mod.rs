@@ -149,6 +149,38 @@ impl IrradianceCache {
     }
 
     /// Rebuilds the lookup grid (after records were removed or changed).
+    /// Checks a cache read from disk for a render with `strata` strata per record and
+    /// `anchors` anchors: finite geometry, the stratum count, links in range.
+    pub fn check(&self, strata: usize, anchors: usize) -> Result<(), String> {
+        for (i, r) in self.records.iter().enumerate() {
+            let finite = r.position.is_finite()
+                && r.normal.is_finite()
+                && r.irradiance.is_finite()
+                && r.error.is_finite()
+                && r.ng.is_finite()
+                && r.radius.is_finite()
+                && r.radius > 0.0
+                && r.footprint.is_finite();
+            if !finite {
+                return Err(format!("cache record {i} has a non-finite value"));
+            }
+            if r.strata.len() != strata {
+                return Err(format!(
+                    "cache record {i} has {} strata; the job's settings make {strata}",
+                    r.strata.len()
+                ));
+            }
+            let link_ok =
+                |a: Option<crate::anchor::AnchorId>| a.is_none_or(|a| a.index() < anchors);
+            if !r.strata.iter().all(|s| link_ok(s.link())) || !link_ok(r.dominant_anchor) {
+                return Err(format!(
+                    "cache record {i} links an anchor that does not exist"
+                ));
+            }
+        }
+        Ok(())
+    }
+
     fn rebuild_tree(&mut self) {
         let error = self.grid.error;
         self.grid = RecordGrid::default();

@@ -56,6 +56,22 @@ pub struct PhotonPaths {
     pub path_start: Vec<u32>,
 }
 
+impl PhotonPaths {
+    /// Checks paths read from disk: the path starts rise and stay within the photons.
+    pub fn check(&self) -> Result<(), String> {
+        let ok = self.path_start.windows(2).all(|w| w[0] <= w[1])
+            && self
+                .path_start
+                .last()
+                .is_none_or(|&e| e as usize <= self.photons.len());
+        if ok {
+            Ok(())
+        } else {
+            Err("the previous frame's photon paths are malformed".into())
+        }
+    }
+}
+
 /// Photon map with its kd-tree.
 pub struct PhotonMap {
     pub photons: Vec<Photon>,

@@ -17,5 +17,6 @@ mod python;
 mod scenes;
 mod schemas;
 pub mod sets;
+mod shot;
 pub mod stat;
 mod tags;

@@ -1,0 +1,201 @@
+//! Checkpoints: the [`FrameState`] after a frame on disk (DESIGN.md, Shot state), so that a
+//! render can stop and go on — `render --state-out DIR` writes them, `render --resume FILE`
+//! starts from one — and farm chunks can hand the shot's state to each other.
+//!
+//! A checkpoint file is
+//!
+//! ```text
+//! "ANCHSTAT"             8 bytes, the magic
+//! format                 u32 little-endian, FORMAT
+//! header                 postcard: anchorage's version, the job's content hash, the frame
+//! state                  DEFLATE (zlib) of postcard: the FrameState
+//! ```
+//!
+//! The magic and the format come first and fixed, so that a file of another format is named
+//! as such before anything else is decoded. A checkpoint is only read back by the anchorage
+//! version, job and scene content it was written for: the state links records and anchors
+//! to the geometry, photon sequences and settings of one job, and reading it into another
+//! would give a silently wrong image. The content hash ([`job_hash`]) covers the job's
+//! settings (its JSON, less the keys that only say which frames to render and where to write
+//! them, plus the command line's method and visibility overrides) and the bytes of every file
+//! the scene was read from, so a farm machine that mounts the shot at another path hashes
+//! the same. Files are written atomically ([`output::write_atomic`]).
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::job::Job;
+use crate::output;
+use crate::scene::Scene;
+use crate::session::FrameState;
+
+/// The first bytes of every checkpoint.
+pub const MAGIC: &[u8; 8] = b"ANCHSTAT";
+
+/// The checkpoint format this build writes and reads. A change to [`FrameState`]'s serde
+/// layout or to this file's layout increments it.
+pub const FORMAT: u32 = 1;
+
+/// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
+/// memory budget; a file beyond this is not one of ours.
+const MAX_BYTES: u64 = 64 << 30;
+
+/// What a checkpoint says about itself.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Header {
+    /// The anchorage version that wrote it (`CARGO_PKG_VERSION`).
+    pub version: String,
+    /// [`job_hash`] of the job it belongs to.
+    pub job: [u8; 32],
+    /// The frame after which the state was taken.
+    pub frame: i32,
+    /// BLAKE3 of the compressed state that follows: a damaged file is named as such before
+    /// it is decompressed.
+    pub body: [u8; 32],
+}
+
+/// The content hash of a render's job and scene: what must match for a checkpoint to be
+/// read back (see the module doc).
+pub fn job_hash(job: &Job, scene: &Scene) -> Result<[u8; 32]> {
+    let mut h = blake3::Hasher::new();
+    h.update(b"anchorage job content\0");
+    let text = std::fs::read(&job.path)
+        .map_err(|e| Error::input(&job.path, "file", format!("cannot read: {e}")))?;
+    // The job as JSON with sorted keys, less what does not reach the state. A job that is
+    // not JSON here was a bare scene (`inspect`); its text then stands for itself.
+    match serde_json::from_slice::<serde_json::Value>(&text) {
+        Ok(serde_json::Value::Object(mut m)) => {
+            m.remove("frames");
+            m.remove("output");
+            h.update(serde_json::Value::Object(m).to_string().as_bytes());
+        }
+        _ => {
+            h.update(&text);
+        }
+    }
+    h.update(format!("\0{:?}\0{:?}\0", job.method, job.render).as_bytes());
+    for file in scene.files() {
+        let bytes = std::fs::read(file)
+            .map_err(|e| Error::input(file, "file", format!("cannot read: {e}")))?;
+        h.update(&(bytes.len() as u64).to_le_bytes());
+        h.update(&bytes);
+    }
+    Ok(*h.finalize().as_bytes())
+}
+
+/// Where `--state-out DIR` puts the state after `frame`: `DIR/NAME.####.state`, beside the
+/// frames' naming.
+pub fn state_path(dir: &Path, job: &Job, frame: i32) -> PathBuf {
+    dir.join(format!("{}.{:04}.state", job.name, frame))
+}
+
+/// Writes `state`, taken after `frame` of the job hashed `job`, to `path` atomically.
+pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Result<()> {
+    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+    z.write_all(&state.encode())
+        .and_then(|()| z.finish())
+        .map_err(|e| Error::Render(format!("cannot compress the state: {e}")))
+        .and_then(|body| {
+            let header = Header {
+                version: env!("CARGO_PKG_VERSION").to_string(),
+                job,
+                frame,
+                body: *blake3::hash(&body).as_bytes(),
+            };
+            let head = postcard::to_stdvec(&header).expect("header serialises");
+            output::write_atomic(path, |w| {
+                let e = |e: std::io::Error| e.to_string();
+                w.write_all(MAGIC).map_err(e)?;
+                w.write_all(&FORMAT.to_le_bytes()).map_err(e)?;
+                w.write_all(&head).map_err(e)?;
+                w.write_all(&body).map_err(e)
+            })
+        })
+}
+
+/// Reads the checkpoint at `path` for the job hashed `job`, whose records have `strata`
+/// strata each: its frame and state. A file that is not a checkpoint, or one of another
+/// format, anchorage version or job, or damaged, is refused with an input error that says
+/// which.
+pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameState)> {
+    let bad = |m: String| Error::input(path, "checkpoint", m);
+    let bytes = crate::scene::gltf::read_limited(path, "checkpoint", MAX_BYTES)?;
+    if bytes.len() < 12 || &bytes[..8] != MAGIC {
+        return Err(bad(
+            "is not an anchorage checkpoint (no ANCHSTAT header)".into()
+        ));
+    }
+    let format = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if format != FORMAT {
+        return Err(bad(format!(
+            "is checkpoint format {format}; this anchorage reads format {FORMAT}"
+        )));
+    }
+    let (header, rest): (Header, _) = postcard::take_from_bytes(&bytes[12..])
+        .map_err(|e| bad(format!("has a damaged header: {e}")))?;
+    let ours = env!("CARGO_PKG_VERSION");
+    if header.version != ours {
+        return Err(bad(format!(
+            "was written by anchorage {}; this is {ours}, whose state may differ",
+            header.version
+        )));
+    }
+    if header.job != job {
+        return Err(bad(format!(
+            "belongs to another job or scene (content hash {} here {}): the job's settings or \
+             a file it reads changed since frame {} was rendered",
+            hex(&header.job[..6]),
+            hex(&job[..6]),
+            header.frame
+        )));
+    }
+    if *blake3::hash(rest).as_bytes() != header.body {
+        return Err(bad(
+            "is damaged: its state does not match its checksum".into()
+        ));
+    }
+    let mut body = Vec::new();
+    flate2::read::ZlibDecoder::new(rest)
+        .read_to_end(&mut body)
+        .map_err(|e| bad(format!("is damaged: {e}")))?;
+    let state = FrameState::decode(&body).map_err(|e| bad(format!("is damaged: {e}")))?;
+    state
+        .check(strata)
+        .map_err(|e| bad(format!("is inconsistent: {e}")))?;
+    Ok((header.frame, state))
+}
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_damaged_or_foreign_file_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("s.state");
+        let state = FrameState::default();
+        write(&p, [7; 32], 4, &state).unwrap();
+        let (frame, back) = read(&p, [7; 32], 64).unwrap();
+        assert_eq!((frame, &back), (4, &state));
+        let msg = |r: Result<(i32, FrameState)>| r.unwrap_err().to_string();
+        assert!(msg(read(&p, [8; 32], 64)).contains("another job"));
+        let mut bytes = std::fs::read(&p).unwrap();
+        bytes[8] = 9;
+        std::fs::write(&p, &bytes).unwrap();
+        assert!(msg(read(&p, [7; 32], 64)).contains("format 9"));
+        bytes[8] = FORMAT as u8;
+        let n = bytes.len();
+        bytes.truncate(n - 4);
+        std::fs::write(&p, &bytes).unwrap();
+        assert!(msg(read(&p, [7; 32], 64)).contains("damaged"));
+        std::fs::write(&p, b"{\"not\": \"a state\"}").unwrap();
+        assert!(msg(read(&p, [7; 32], 64)).contains("not an anchorage checkpoint"));
+    }
+}

@@ -1,0 +1,183 @@
+//! Shot state on disk: checkpoints (`render --state-out/--resume`), warm-up chunks
+//! (`--warmup`), and what refuses a checkpoint.
+
+use std::path::{Path, PathBuf};
+
+use super::common::{root, run, stderr, tempdir};
+
+/// `dir/job.json` rendering `dir/room.gltf` (a copy of the example room) at 48×36 with the
+/// anchor method at the draft preset; `extra` is spliced into the job's JSON object.
+fn room_job(dir: &Path, extra: &str) -> PathBuf {
+    std::fs::copy(
+        root().join("examples/room/room.gltf"),
+        dir.join("room.gltf"),
+    )
+    .unwrap();
+    let job = dir.join("job.json");
+    std::fs::write(
+        &job,
+        format!(
+            r#"{{"scene":[{{"path":"room.gltf"}}],"resolution":[48,36],"frames":{{"start":0,"end":48}},
+            "render":{{"samples_per_pixel":2}},"method":{{"name":"anchors","preset":"draft"}},"output":{{"name":"room"}}{extra}}}"#
+        ),
+    )
+    .unwrap();
+    job
+}
+
+fn render(job: &Path, frames: &str, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "render",
+        job.to_str().unwrap(),
+        "--frames",
+        frames,
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+fn exr(dir: &Path, frame: i32) -> Vec<u8> {
+    let p = dir.join(format!("room.{frame:04}.exr"));
+    std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .map(|d| {
+            d.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+/// Frames 3–5 resumed from the state after frame 2 are byte for byte frames 3–5 of a run
+/// through 0–5 (the cache, the anchors and their photon links all come back), and a chunk
+/// whose warm-up reaches back to the animation's start is too.
+#[test]
+fn resume_and_a_full_warm_up_reproduce_a_full_run() {
+    let d = tempdir();
+    let job = room_job(d.path(), "");
+    let (full, states, resumed, warm) = (
+        d.path().join("full"),
+        d.path().join("states"),
+        d.path().join("resumed"),
+        d.path().join("warm"),
+    );
+    let o = render(
+        &job,
+        "0-5",
+        &full,
+        &[
+            "--state-out",
+            states.to_str().unwrap(),
+            "--state-every",
+            "2",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    // After every second frame of the range, and after its last.
+    assert_eq!(
+        files_in(&states),
+        ["room.0001.state", "room.0003.state", "room.0005.state"]
+    );
+    let o = render(
+        &job,
+        "2-5",
+        &resumed,
+        &["--resume", states.join("room.0001.state").to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in 2..=5 {
+        assert!(
+            exr(&full, f) == exr(&resumed, f),
+            "resumed frame {f} differs from the full run's"
+        );
+    }
+    // 100 frames of warm-up stop at the animation's first frame, 0: the same run again.
+    let o = render(&job, "4-5", &warm, &["--warmup", "100"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        files_in(&warm)
+            .iter()
+            .filter(|f| f.ends_with(".exr"))
+            .count(),
+        2,
+        "warm-up frames are not written: {:?}",
+        files_in(&warm)
+    );
+    for f in 4..=5 {
+        assert!(
+            exr(&full, f) == exr(&warm, f),
+            "warmed-up frame {f} differs from the full run's"
+        );
+    }
+    // Without the state the chunk's first frame differs (the test can tell).
+    let cold = d.path().join("cold");
+    let o = render(&job, "2-2", &cold, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(exr(&full, 2) != exr(&cold, 2));
+}
+
+/// A checkpoint of another job, of an edited scene, of the wrong frame, or no checkpoint at
+/// all, is refused with exit code 2, a message naming the file and the reason, and no frame
+/// written.
+#[test]
+fn a_foreign_checkpoint_is_refused() {
+    let d = tempdir();
+    let job = room_job(d.path(), "");
+    let states = d.path().join("states");
+    let o = render(
+        &job,
+        "0-1",
+        &d.path().join("a"),
+        &["--state-out", states.to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let state = states.join("room.0001.state");
+    let refused = |job: &Path, frames: &str, state: &Path, why: &str| {
+        let out = d.path().join(format!("refused-{}", why.len()));
+        let o = render(job, frames, &out, &["--resume", state.to_str().unwrap()]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{why}: {err}");
+        assert!(
+            err.contains(&state.display().to_string()),
+            "{why}: names the file: {err}"
+        );
+        assert!(err.contains(why), "{why}: {err}");
+        assert!(
+            files_in(&out).iter().all(|f| !f.ends_with(".exr")),
+            "{why}: nothing rendered"
+        );
+    };
+    // Another job: another seed.
+    let other = tempdir();
+    let other_job = room_job(other.path(), r#","seed":7"#);
+    refused(&other_job, "2-3", &state, "another job");
+    // The same job with its scene edited (the lamp's emission).
+    let gltf = d.path().join("room.gltf");
+    let text = std::fs::read_to_string(&gltf).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let lamp = &mut doc["materials"][4];
+    assert_eq!(lamp["name"], "lamp");
+    lamp["emissiveFactor"] = serde_json::json!([0.5, 0.5, 0.5]);
+    std::fs::write(&gltf, doc.to_string()).unwrap();
+    refused(&job, "2-3", &state, "another job");
+    std::fs::write(&gltf, &text).unwrap();
+    // The right job, the wrong frame.
+    refused(&job, "3-4", &state, "state after frame 1");
+    // Not a checkpoint.
+    refused(&job, "2-3", &job, "not an anchorage checkpoint");
+    // The output and frames keys do not count: another output directory resumes.
+    let o = render(
+        &job,
+        "2-2",
+        &d.path().join("b"),
+        &["--resume", state.to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+}
