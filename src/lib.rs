@@ -16,8 +16,8 @@
 //! - [`integrator`]: the one pixel loop and the methods, Pseudocode 2 among them;
 //! - [`session`]: the state a frame hands to the next;
 //! - [`job`], [`stats`], [`output`], [`checkpoint`] (the state on disk), [`pipeline`] (the
-//!   frame loop), [`inspect`] and
-//!   [`compare`], driven by the thin `main`.
+//!   frame loop), [`inspect`],
+//!   [`compare`] and [`farm`] (chunked farm jobs), driven by the thin `main`.
 
 // `!(x > 0.0)` is deliberate throughout: it rejects NaN as well as non-positive values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -31,6 +31,7 @@ pub mod checkpoint;
 pub mod color;
 pub mod compare;
 pub mod error;
+pub mod farm;
 pub mod geom;
 pub mod inspect;
 pub mod integrator;

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anchorage::job::{FrameRange, Job, Overrides, VisibilityChoice};
 use anchorage::pipeline::{self, Progress, RenderOptions, StateOptions};
-use anchorage::{Error, compare, inspect};
+use anchorage::{Error, compare, farm, inspect};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -111,6 +111,42 @@ enum Command {
     },
     /// Check a job and its scenes without rendering.
     Validate { job: PathBuf },
+    /// Write an Open Job Description template that renders the job's frames in chunks on a
+    /// farm (`openjd run` runs it locally; AWS Deadline Cloud submits it), or measure what
+    /// warming up parallel chunks buys (--measure-warmup).
+    Farm {
+        job: PathBuf,
+        /// Frames per chunk.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+        chunk_size: u32,
+        /// Parallel chunks, each rendering N unwritten frames before its range.
+        #[arg(long, value_name = "N", default_value_t = DEFAULT_WARMUP, conflicts_with = "chained")]
+        warmup: u32,
+        /// Chunks run one after another, each resuming the previous chunk's last state: the
+        /// frames of one render, byte for byte.
+        #[arg(long)]
+        chained: bool,
+        /// Inclusive frame range `A-B`, overriding the job's `frames`.
+        #[arg(long)]
+        frames: Option<String>,
+        /// The frames' output directory the template defaults to, overriding the job's.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the template to FILE (default: standard output).
+        #[arg(long, short = 'o', value_name = "FILE")]
+        template: Option<PathBuf>,
+        /// The anchorage executable the template runs (default: this one).
+        #[arg(long, value_name = "PATH")]
+        anchorage: Option<PathBuf>,
+        /// Instead of a template: render the frames through, then every chunk seam again
+        /// after each of these warm-ups (comma-separated frame counts), and print the seam
+        /// error and the cost of each.
+        #[arg(long, value_name = "N,N,..", conflicts_with_all = ["template", "chained"])]
+        measure_warmup: Option<String>,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
 }
 
 fn parse_frames(s: &str) -> Result<FrameRange, Error> {
@@ -131,6 +167,10 @@ fn parse_frames(s: &str) -> Result<FrameRange, Error> {
     }
     Ok(FrameRange { start, end })
 }
+
+/// Frames a parallel farm chunk renders before its range by default (README, Farm jobs:
+/// the seam error this leaves, measured).
+const DEFAULT_WARMUP: u32 = 4;
 
 /// Most worker threads `--threads` may ask for: far more than any machine's cores, far fewer
 /// than would exhaust its memory for stacks.
@@ -277,6 +317,65 @@ fn run(cli: Cli) -> Result<(), Error> {
             };
             let scene = job.load_scene_layers()?;
             print!("{}", inspect::report(&job, &scene));
+            Ok(())
+        }
+        Command::Farm {
+            job,
+            chunk_size,
+            warmup,
+            chained,
+            frames,
+            out,
+            template,
+            anchorage,
+            measure_warmup,
+            threads,
+        } => {
+            set_threads(threads)?;
+            let overrides = Overrides {
+                frames: frames.as_deref().map(parse_frames).transpose()?,
+                out_dir: out,
+                ..Overrides::default()
+            };
+            let job = Job::load(&job, &overrides)?;
+            let scene = job.load_scene()?;
+            if let Some(list) = measure_warmup {
+                let warmups = list
+                    .split(',')
+                    .map(|v| v.trim().parse::<u32>())
+                    .collect::<Result<Vec<u32>, _>>()
+                    .map_err(|_| {
+                        Error::input("--measure-warmup", &list, "expected frame counts N,N,..")
+                    })?;
+                anchorage::budget::check(&job, &scene, None)?;
+                let rows = farm::measure_seams(&job, &scene, chunk_size, &warmups, |m| {
+                    eprintln!("anchorage: {m}")
+                })?;
+                print!("{}", farm::seam_table(&rows));
+                return Ok(());
+            }
+            let split = if chained {
+                farm::Split::Chained
+            } else {
+                farm::Split::Warmup(warmup)
+            };
+            let exe = match anchorage {
+                Some(p) => p,
+                None => std::env::current_exe()
+                    .map_err(|e| Error::Render(format!("cannot locate anchorage: {e}")))?,
+            };
+            let dir = match template.as_deref().and_then(Path::parent) {
+                Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+                _ => PathBuf::from("."),
+            };
+            let t = farm::template(&job, chunk_size, split, &exe, &dir)?;
+            let text = serde_json::to_string_pretty(&t).expect("a JSON value serialises") + "\n";
+            match template {
+                Some(path) => anchorage::output::write_atomic(&path, |w| {
+                    std::io::Write::write_all(w, text.as_bytes()).map_err(|e| e.to_string())
+                })?,
+                None => print!("{text}"),
+            }
             Ok(())
         }
         Command::Validate { job } => {

@@ -21,7 +21,7 @@
 pub mod plan;
 mod plot;
 mod run;
-mod score;
+pub mod score;
 mod table;
 
 use std::path::{Path, PathBuf};
