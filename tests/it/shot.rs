@@ -181,3 +181,80 @@ fn a_foreign_checkpoint_is_refused() {
     );
     assert!(o.status.success(), "{}", stderr(&o));
 }
+
+/// `openjd` of the Python environment `.ci/run` creates (`openjd-cli`), beside its python.
+fn openjd() -> Option<PathBuf> {
+    let exe = super::common::python()?.with_file_name("openjd");
+    exe.exists().then_some(exe)
+}
+
+fn openjd_run(exe: &Path, args: &[&str]) {
+    let o = std::process::Command::new(exe)
+        .args(args)
+        .output()
+        .expect("run openjd");
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "openjd {args:?} failed:\n{out}\n{}",
+        stderr(&o)
+    );
+}
+
+/// The farm templates pass `openjd check`, and `openjd run` renders with them what a plain
+/// render does: the chained chunks byte for byte, the warm-up chunks every frame, the first
+/// chunk as the plain render (nothing to warm up before the animation's first frame).
+#[test]
+fn farm_templates_run_on_open_job_description() {
+    let Some(openjd) = openjd() else {
+        eprintln!("skipped: openjd not found in the Python environment");
+        return;
+    };
+    let d = tempdir();
+    let job = room_job(d.path(), "");
+    let plain = d.path().join("plain");
+    let o = render(&job, "0-4", &plain, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for (how, extra) in [("chained", "--chained"), ("warm", "--warmup=1")] {
+        let template = d.path().join(format!("{how}.json"));
+        let o = run(&[
+            "farm",
+            job.to_str().unwrap(),
+            "--frames",
+            "0-4",
+            "--chunk-size",
+            "2",
+            extra,
+            "--out",
+            d.path().join(how).to_str().unwrap(),
+            "-o",
+            template.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let t = template.to_str().unwrap();
+        openjd_run(&openjd, &["check", t]);
+        if how == "chained" {
+            openjd_run(
+                &openjd,
+                &["run", t, "--step", "Frames 4-4", "--run-dependencies"],
+            );
+        } else {
+            openjd_run(&openjd, &["run", t, "--step", "Render"]);
+        }
+        let out = d.path().join(how);
+        for f in 0..=4 {
+            let same = exr(&plain, f) == exr(&out, f);
+            let expected = how == "chained" || f < 2;
+            assert_eq!(
+                same, expected,
+                "{how}: frame {f} equal to the plain render's: {same}"
+            );
+        }
+        if how == "chained" {
+            assert_eq!(
+                files_in(&out.join("state")),
+                ["room.0001.state", "room.0003.state", "room.0004.state"]
+            );
+        }
+    }
+}
