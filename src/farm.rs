@@ -201,6 +201,11 @@ pub struct SeamRow {
     pub indirect_rms_pct: f64,
     /// The largest of the seams' indirect errors.
     pub indirect_rms_max_pct: f64,
+    /// The step the viewer sees at the seam: the chunk's first frame against the full run's
+    /// frame before it (indirect, RMS %), beside the full run's own step between those two
+    /// frames (the same for every row).
+    pub indirect_step_pct: f64,
+    pub full_run_indirect_step_pct: f64,
     /// The chunk's first frame's gather rays against the full run's at that frame.
     pub gather_rays: u64,
     pub full_run_gather_rays: u64,
@@ -238,11 +243,14 @@ pub fn measure_seams(
             ),
         ));
     }
-    let mut full = Vec::new();
+    let (mut full, mut before) = (Vec::new(), Vec::new());
     let mut state = FrameState::default();
     for f in job.frames.start..=job.frames.end {
         let mut stats = pipeline::new_stats(job, f);
         let img = pipeline::render_frame(job, scene, &resources, &mut state, f, &mut stats)?;
+        if seams.contains(&(f + 1)) {
+            before.push(img.clone());
+        }
         if seams.contains(&f) {
             full.push((img, stats.counts.rays_shot));
         }
@@ -253,7 +261,8 @@ pub fn measure_seams(
     for &n in warmups {
         let (mut beauty, mut indirect, mut worst, mut rays, mut extra, mut secs) =
             (0.0, 0.0, 0.0f64, 0u64, 0.0, 0.0);
-        for (&seam, (reference, _)) in seams.iter().zip(&full) {
+        let (mut step, mut own_step) = (0.0, 0.0);
+        for ((&seam, (reference, _)), previous) in seams.iter().zip(&full).zip(&before) {
             let mut chunk = job.clone();
             chunk.frames = FrameRange {
                 start: seam,
@@ -275,6 +284,8 @@ pub fn measure_seams(
             let e = rms_error_pct(&img, reference, Aov::Indirect);
             indirect += e;
             worst = worst.max(e);
+            step += rms_error_pct(&img, previous, Aov::Indirect);
+            own_step += rms_error_pct(reference, previous, Aov::Indirect);
             rays += r;
             extra += f64::from(seam - first);
             progress(&format!("warm-up {n}: seam at frame {seam}"));
@@ -285,6 +296,8 @@ pub fn measure_seams(
             beauty_rms_pct: beauty / k,
             indirect_rms_pct: indirect / k,
             indirect_rms_max_pct: worst,
+            indirect_step_pct: step / k,
+            full_run_indirect_step_pct: own_step / k,
             gather_rays: rays / seams.len() as u64,
             full_run_gather_rays: full.iter().map(|x| x.1).sum::<u64>() / seams.len() as u64,
             extra_frames_per_chunk: extra / k,
@@ -299,15 +312,17 @@ pub fn measure_seams(
 /// The rows of [`measure_seams`] as a table.
 pub fn seam_table(rows: &[SeamRow]) -> String {
     let mut t = String::from(
-        "warm-up  seam RMS beauty  seam RMS indirect (max)  gather rays (full run)  extra frames/chunk  extra frames  s/seam\n",
+        "warm-up  seam RMS beauty  seam RMS indirect (max)  indirect step (full run)  gather rays (full run)  extra frames/chunk  extra frames  s/seam\n",
     );
     for r in rows {
         t += &format!(
-            "{:>7}  {:>14.2} %  {:>11.2} % ({:>6.2} %)  {:>10} ({:>9})  {:>18.1}  {:>10.1} %  {:>6.2}\n",
+            "{:>7}  {:>14.2} %  {:>11.2} % ({:>6.2} %)  {:>10.2} % ({:>6.2} %)  {:>10} ({:>9})  {:>18.1}  {:>10.1} %  {:>6.2}\n",
             r.warmup,
             r.beauty_rms_pct,
             r.indirect_rms_pct,
             r.indirect_rms_max_pct,
+            r.indirect_step_pct,
+            r.full_run_indirect_step_pct,
             r.gather_rays,
             r.full_run_gather_rays,
             r.extra_frames_per_chunk,

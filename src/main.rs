@@ -170,7 +170,7 @@ fn parse_frames(s: &str) -> Result<FrameRange, Error> {
 
 /// Frames a parallel farm chunk renders before its range by default (README, Farm jobs:
 /// the seam error this leaves, measured).
-const DEFAULT_WARMUP: u32 = 4;
+const DEFAULT_WARMUP: u32 = 0;
 
 /// Most worker threads `--threads` may ask for: far more than any machine's cores, far fewer
 /// than would exhaust its memory for stacks.
