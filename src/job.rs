@@ -182,7 +182,7 @@ fn default_up() -> [f32; 3] {
     [0.0, 1.0, 0.0]
 }
 
-#[derive(Debug, Clone, Copy, Deserialize, JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FrameRange {
     pub start: i32,

@@ -299,6 +299,28 @@ impl AlphaTest for Surfaces {
 mod tests {
     use super::*;
 
+    /// The extension's own example: offset (0, 1), rotation π/2, scale 0.5 "utilizes only
+    /// the lower left quadrant of the source image, rotated clockwise 90°" (UV's v runs
+    /// down the image, so the lower left quadrant is u ∈ [0, ½], v ∈ [½, 1]). The opposite
+    /// rotation sign maps the unit square to u ∈ [−½, 0], v ∈ [1, 1½], outside the image.
+    #[test]
+    fn texture_transform_matches_the_extensions_example() {
+        let t = UvTransform::new(
+            Vec2::new(0.0, 1.0),
+            std::f32::consts::FRAC_PI_2,
+            Vec2::splat(0.5),
+        );
+        for uv in [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [0.3, 0.7]] {
+            let p = t.apply(Vec2::from(uv));
+            assert!(
+                (-1e-6..=0.5 + 1e-6).contains(&p.x) && (0.5 - 1e-6..=1.0 + 1e-6).contains(&p.y),
+                "{uv:?} -> {p}"
+            );
+        }
+        // Corners: the image's lower left (0, 1) is where uv (0, 0) lands.
+        assert!(t.apply(Vec2::ZERO).distance(Vec2::new(0.0, 1.0)) < 1e-6);
+    }
+
     #[test]
     fn wrap_modes_map_into_range() {
         assert_eq!(Wrap::Repeat.apply(-1, 4), 3);
