@@ -19,3 +19,4 @@ mod schemas;
 pub mod sets;
 pub mod stat;
 mod tags;
+mod watch;
