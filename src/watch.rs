@@ -317,7 +317,7 @@ pub fn classify(old: &Loaded, new: &Loaded) -> Changes {
             }
             let mut emission_only = om.clone();
             emission_only.emission = nm.emission;
-            emission_only.emissive_texture = nm.emissive_texture.clone();
+            emission_only.emissive_texture = nm.emissive_texture;
             if om.alpha_cutoff.is_some() || nm.alpha_cutoff.is_some() {
                 // A cut-out material's alpha shapes geometry that rays see.
                 note(
