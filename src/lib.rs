@@ -45,5 +45,6 @@ pub mod scene;
 pub mod session;
 pub mod stats;
 pub mod visibility;
+pub mod watch;
 
 pub use error::{Error, Result};

@@ -147,6 +147,30 @@ enum Command {
         #[arg(long)]
         threads: Option<usize>,
     },
+    /// Render a job's frames, then render them again whenever the job or a file its scene
+    /// reads changes, keeping the anchors' state where the change allows (until SIGINT or
+    /// SIGTERM).
+    Watch {
+        job: PathBuf,
+        /// Inclusive frame range `A-B` (or one frame `A`), overriding the job's `frames`.
+        #[arg(long)]
+        frames: Option<String>,
+        /// Output directory, overriding the job's `output.directory`.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Method, overriding the job's `method.name`.
+        #[arg(long)]
+        method: Option<String>,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Also write a tone-mapped sRGB PNG per frame.
+        #[arg(long)]
+        preview: bool,
+        /// Only the one line per re-render, no line per frame.
+        #[arg(long, short)]
+        quiet: bool,
+    },
 }
 
 fn parse_frames(s: &str) -> Result<FrameRange, Error> {
@@ -378,6 +402,30 @@ fn run(cli: Cli) -> Result<(), Error> {
             }
             Ok(())
         }
+        Command::Watch {
+            job,
+            frames,
+            out,
+            method,
+            threads,
+            preview,
+            quiet,
+        } => {
+            set_threads(threads)?;
+            let overrides = Overrides {
+                frames: frames.as_deref().map(parse_frames).transpose()?,
+                out_dir: out,
+                method: method.as_deref().map(parse_method).transpose()?,
+                visibility: None,
+                exposure: None,
+            };
+            anchorage::watch::run(&anchorage::watch::Options {
+                job,
+                overrides,
+                preview,
+                quiet,
+            })
+        }
         Command::Validate { job } => {
             let job = Job::load(&job, &Overrides::default())?;
             let scene = job.load_scene()?;
@@ -443,7 +491,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     if matches!(
         cli.command,
-        Command::Render { .. } | Command::Compare { .. }
+        Command::Render { .. } | Command::Compare { .. } | Command::Watch { .. }
     ) && let Err(e) = anchorage::output::install_signal_cleanup()
     {
         eprintln!("anchorage: error: {e}");

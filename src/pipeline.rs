@@ -83,6 +83,27 @@ pub fn render_frame(
     frame: i32,
     stats: &mut FrameStats,
 ) -> Result<FrameImage> {
+    render_frame_with(
+        job,
+        scene,
+        resources,
+        state,
+        frame,
+        stats,
+        cached::Refresh::default(),
+    )
+}
+
+/// [`render_frame`] with what watch mode knows about the state ([`cached::Refresh`]).
+pub fn render_frame_with(
+    job: &Job,
+    scene: &Scene,
+    resources: &Resources,
+    state: &mut FrameState,
+    frame: i32,
+    stats: &mut FrameStats,
+    refresh: cached::Refresh,
+) -> Result<FrameImage> {
     let aspect = job.width as f32 / job.height as f32;
     let (fs, et) = scene.evaluate(job.time_of(frame), aspect, &resources.statics);
     stats.timings_s.scene_evaluation = et.animation;
@@ -121,6 +142,7 @@ pub fn render_frame(
                 resources.visibility.as_ref(),
                 rs.samples_per_pixel,
                 rs.light_samples,
+                refresh,
             )
             .map_err(|e| Error::Render(format!("frame {frame}: {e}")))?;
             let t = &mut stats.timings_s;

@@ -119,6 +119,15 @@ impl Anchor {
         self.irradiance = rgbe_encode(e);
     }
 
+    /// Sets the albedo (a material edit, `integrator::anchors::refresh_albedo`).
+    pub fn set_albedo(&mut self, albedo: Vec3) {
+        self.albedo = [
+            srgb_encode(albedo.x),
+            srgb_encode(albedo.y),
+            srgb_encode(albedo.z),
+        ];
+    }
+
     /// Radiance leaving the anchor: albedo × L_i / π.
     pub fn radiance(&self) -> Vec3 {
         self.albedo() * self.irradiance() * std::f32::consts::FRAC_1_PI

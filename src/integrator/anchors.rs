@@ -193,6 +193,99 @@ pub fn update(
     Ok(st)
 }
 
+/// Watch mode's relight (a light or a material changed; geometry and camera are as when the
+/// cache was made for this very frame): Pseudocode 2 without visibility detection or record
+/// placement. Every record, stratum link and anchor is kept; L_i is re-estimated at every
+/// anchor whose photons changed (§3.3.2, as every frame does) and, with `albedo`, every
+/// anchor reads its albedo again from the surface it lies on (a material edit changes the
+/// radiance an anchor reflects, albedo × L_i / π, and its reuse test). The only gather rays
+/// are those of strata that hit a dynamic prim: no anchor holds their light, so they are
+/// traced again (the same directions, so the same hits) and estimated from the photons.
+pub fn relight(
+    ctx: &FrameContext,
+    cache: &mut IrradianceCache,
+    anchors: &mut Option<AnchorSet>,
+    pm: &PhotonMap,
+    params: &GiParams,
+    albedo: bool,
+    timings: &mut GatherTimings,
+) -> AnchorStats {
+    let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
+    let mut st = AnchorStats::default();
+    let set = anchors.get_or_insert_with(|| {
+        let (lo, hi) = ctx.scene.static_box();
+        AnchorSet::new(Quantizer::new(lo, hi))
+    });
+    let t = Instant::now();
+    if albedo {
+        refresh_albedo(ctx, set);
+    }
+    st.anchors_reestimated = reestimate_anchors(set, pm, ap.anchor_k(k));
+    relink_photons(set, pm);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+
+    let att = Attacher {
+        frame: ctx.scene,
+        m: ctx.materials,
+        pm,
+        k,
+        params: *ap,
+        scale: ctx.scene.static_radius(),
+        importance: None,
+    };
+    let t = Instant::now();
+    let none: Vec<StrataBits> = cache
+        .records
+        .iter()
+        .map(|r| StrataBits::new(r.strata.len()))
+        .collect();
+    let (todo, hits) = reshoot(ctx.scene, cache, &none, cp);
+    timings.final_gathering += t.elapsed().as_secs_f64();
+    st.rays_reshot = todo.iter().map(|l| l.len() as u64).sum();
+    timings.rays += st.rays_reshot;
+
+    let t = Instant::now();
+    update_records(&att, set, cache, &todo, hits, cp, ctx.frame);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+
+    let refs = anchor_references(set, cache);
+    st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
+    st.reuse_histogram = reuse_histogram(&refs);
+    st.anchors = set.live_count() as u64;
+    st.anchors_created = set.take_created();
+    st
+}
+
+/// Reads every live anchor's albedo again from the static surface it lies on: a short ray
+/// from just above the anchor back along its normal finds that surface (the anchor keeps
+/// no prim index, §3's 18 bytes). An anchor whose surface the ray does not find again
+/// (its quantised position fell past a triangle's edge) keeps its albedo.
+pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet) {
+    let q = set.quantizer;
+    // Far enough above the surface to clear the quantisation and the hit's rounding, near
+    // enough that no other surface fits in between.
+    let lift = 16.0 * q.max_error() + 1e-6 * ctx.scene.static_radius();
+    let fresh: Vec<Option<Vec3>> = set
+        .anchors
+        .par_iter()
+        .map(|a| {
+            if !a.is_live() {
+                return None;
+            }
+            let n = a.normal();
+            let sp = crate::interaction::trace(ctx.scene, a.position(&q) + lift * n, -n)?;
+            let back = (sp.position - a.position(&q)).length();
+            (sp.hit.motion == Motion::Static && back <= 2.0 * lift)
+                .then(|| sp.albedo(ctx.materials))
+        })
+        .collect();
+    for (i, al) in fresh.into_iter().enumerate() {
+        if let Some(al) = al {
+            set.anchor_mut(AnchorId(i as u32)).set_albedo(al);
+        }
+    }
+}
+
 /// Re-estimates L_i at the anchors from this frame's photons (§3.3.2); returns how many
 /// were estimated. The photons follow the same paths wherever nothing moved, so an anchor
 /// whose last estimate reached no photon that changed (gone, new or different) would get

@@ -74,8 +74,21 @@ pub struct CachedState<'a> {
     pub anchors: &'a mut Option<AnchorSet>,
 }
 
+/// What watch mode knows about the state the anchor method carries into a frame
+/// (`crate::watch`). The default, for a render's frame after frame, knows nothing.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Refresh {
+    /// The state was left by this same frame and only lights or materials changed since:
+    /// [`super::anchors::relight`] instead of Pseudocode 2.
+    pub relight_only: bool,
+    /// Materials changed since the state was made: anchors read their albedo again
+    /// ([`super::anchors::refresh_albedo`]).
+    pub albedo: bool,
+}
+
 /// Renders a frame with a cached method: prepare (photons, cache update and placement),
 /// then shade.
+#[allow(clippy::too_many_arguments)] // a frame's every input
 pub fn render(
     ctx: &FrameContext,
     state: CachedState,
@@ -84,6 +97,7 @@ pub fn render(
     visibility: &dyn Visibility,
     spp: u32,
     light_samples: u32,
+    refresh: Refresh,
 ) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
     let mut st = CachedStats::default();
     let t = Instant::now();
@@ -108,7 +122,22 @@ pub fn render(
     let mut gt = GatherTimings::default();
     let cache = state.cache;
     cache.set_error(params.cache.error);
-    if method == CachedMethod::Anchors {
+    if method == CachedMethod::Anchors && refresh.relight_only {
+        st.anchors = Some(super::anchors::relight(
+            ctx,
+            cache,
+            state.anchors,
+            &pm,
+            params,
+            refresh.albedo,
+            &mut gt,
+        ));
+    } else if method == CachedMethod::Anchors {
+        if refresh.albedo
+            && let Some(set) = state.anchors.as_mut()
+        {
+            super::anchors::refresh_albedo(ctx, set);
+        }
         st.anchors = Some(super::anchors::update(
             ctx,
             cache,

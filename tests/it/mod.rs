@@ -20,3 +20,4 @@ pub mod sets;
 mod shot;
 pub mod stat;
 mod tags;
+mod watch;

@@ -1,0 +1,735 @@
+//! `anchorage watch`: re-renders a job's frames whenever the job file or a file its scene
+//! reads changes, keeping as much of the anchor method's state as the change leaves valid.
+//!
+//! The files are watched through `notify` with a debouncer: the parent directory of each
+//! (non-recursively), filtered by path, so that editors' atomic saves (a delete and a
+//! re-create, or a rename over the file) are seen like writes, and a burst of saves is one
+//! reload. The set of files is read again after every reload (a glTF edit can add an image).
+//!
+//! After a reload the old and the new job and scene are compared ([`classify`]) and one rule
+//! is chosen for the re-render, the cheapest that stays valid for every change:
+//!
+//! - **relight** — lights (punctual intensity, colour, placement; emissive materials) or
+//!   materials changed: every record, stratum link and anchor is kept and only L_i is
+//!   re-estimated from the new photons (§3.3.2); anchors read their albedo again after a
+//!   material edit (they store it, §3, and reflect albedo × L_i / π). The state is the one
+//!   the same frame left, so no visibility detection is needed: the only gather rays are
+//!   those of strata whose ray hit a dynamic prim (no anchor holds their light).
+//! - **dynamic** — a dynamic prim's geometry or animation changed: the state is kept and the
+//!   visibility machinery (§3.2, Pseudocode 2) re-shoots the strata that see a dynamic prim
+//!   now or saw one in the state's frame, as from one frame to the next.
+//! - **camera** — the camera changed: static records are kept, new ones are placed where
+//!   the new view needs them, and those the new view does not use are dropped.
+//! - **rebuild** — static geometry, or a setting the cache depends on (method, strata,
+//!   photons, resolution, seed, ...), changed: a fresh state, as `render` starts with.
+//!
+//! The state of every frame of the range is kept after its render, so that a frame is
+//! re-rendered from the state it left itself. Methods without anchors (`brute-force`,
+//! `precomputed`) keep no state that a light or material edit leaves valid (their records
+//! hold irradiance of the old scene): every change rebuilds them.
+//!
+//! Bad input never ends the watch: a file that does not load (half-written, deleted) is
+//! reported once, the last good scene stays, and the next change that loads renders again.
+//! SIGINT and SIGTERM end it ([`crate::output::install_signal_cleanup`] removes staged temp
+//! files, so no signal, even during a render, leaves one behind).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Debug;
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use notify::{EventKind, RecursiveMode};
+use notify_debouncer_full::{DebounceEventResult, new_debouncer};
+
+use crate::error::{Error, Result};
+use crate::geom::Motion;
+use crate::integrator::cached::Refresh;
+use crate::job::{Job, Method, Overrides};
+use crate::pipeline;
+use crate::scene::Scene;
+use crate::session::{FrameState, Resources};
+
+/// How long a file must be quiet before its changes are acted on: an editor's burst of
+/// saves is one reload.
+const DEBOUNCE: Duration = Duration::from_millis(300);
+
+/// What `anchorage watch` was asked to do.
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub job: PathBuf,
+    pub overrides: Overrides,
+    /// Also write a tone-mapped PNG per frame.
+    pub preview: bool,
+    /// No per-frame lines (the one line per re-render stays).
+    pub quiet: bool,
+}
+
+/// How a re-render treats the state, from cheapest to dearest (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Rule {
+    Relight,
+    Dynamic,
+    Camera,
+    Rebuild,
+}
+
+impl Rule {
+    pub fn name(self) -> &'static str {
+        match self {
+            Rule::Relight => "relight",
+            Rule::Dynamic => "dynamic",
+            Rule::Camera => "camera",
+            Rule::Rebuild => "rebuild",
+        }
+    }
+
+    fn explain(self, method: Method) -> &'static str {
+        match self {
+            Rule::Relight => "records, strata links and anchors kept, L_i re-estimated",
+            Rule::Dynamic => "state kept, the strata that see dynamic prims re-shot",
+            Rule::Camera => "static records kept, new ones placed for the new view",
+            Rule::Rebuild if method == Method::Anchors => "fresh state",
+            Rule::Rebuild => "fresh state: this method keeps no anchors",
+        }
+    }
+}
+
+/// What changed between two loads of a job, and the rule that handles it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Changes {
+    /// What changed, for the log: `light "Key" intensity`, `material "Floor"`, ...
+    pub what: Vec<String>,
+    pub rule: Rule,
+    /// A material changed: anchors read their albedo again.
+    pub materials: bool,
+}
+
+/// Content hashes of what [`classify`] compares and that is costly to compare otherwise:
+/// evaluated geometry, lights and camera per frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Signature {
+    statics: u64,
+    dynamic: BTreeMap<i32, u64>,
+    lights: BTreeMap<i32, u64>,
+    camera: BTreeMap<i32, u64>,
+    textures: Vec<u64>,
+}
+
+/// A hasher fed by `Debug` formatting: content equality of the types the scene is made of
+/// (which have no `Hash`), exact for floats (`Debug` prints them so that they round-trip).
+struct DebugHasher(std::collections::hash_map::DefaultHasher);
+
+impl std::fmt::Write for DebugHasher {
+    fn write_str(&mut self, s: &str) -> std::fmt::Result {
+        self.0.write(s.as_bytes());
+        Ok(())
+    }
+}
+
+/// Geometry's content: triangles, shading and attributes (its alpha test is the materials',
+/// compared on their own).
+fn geometry_hash(g: &crate::geom::Geometry) -> u64 {
+    debug_hash(&(&g.triangles, &g.shading, &g.attributes))
+}
+
+fn debug_hash(v: &impl Debug) -> u64 {
+    use std::fmt::Write;
+    let mut h = DebugHasher(Default::default());
+    let _ = write!(h, "{v:?}");
+    h.0.finish()
+}
+
+impl Signature {
+    pub fn of(job: &Job, scene: &Scene) -> Signature {
+        let origin = scene.render_origin();
+        let aspect = job.width as f32 / job.height as f32;
+        let per_frame = |f: &dyn Fn(f32) -> u64| {
+            (job.frames.start..=job.frames.end)
+                .map(|fr| (fr, f(job.time_of(fr))))
+                .collect::<BTreeMap<_, _>>()
+        };
+        Signature {
+            statics: geometry_hash(&scene.geometry_in(0.0, Motion::Static, origin)),
+            dynamic: per_frame(&|t| geometry_hash(&scene.geometry_in(t, Motion::Dynamic, origin))),
+            lights: per_frame(&|t| debug_hash(&scene.lights_in(t, origin))),
+            camera: per_frame(&|t| debug_hash(&scene.camera_in(t, aspect, origin))),
+            textures: scene
+                .textures
+                .iter()
+                .map(|t| {
+                    let mut h = std::collections::hash_map::DefaultHasher::new();
+                    (t.width, t.height).hash(&mut h);
+                    for v in &t.texels {
+                        v.to_array().map(f32::to_bits).hash(&mut h);
+                    }
+                    h.finish()
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Whether two per-frame hash maps differ on a frame both have.
+fn differ(a: &BTreeMap<i32, u64>, b: &BTreeMap<i32, u64>) -> bool {
+    a.iter().any(|(f, h)| b.get(f).is_some_and(|g| g != h))
+}
+
+/// A job and its scene that loaded, with their signature.
+pub struct Loaded {
+    pub job: Job,
+    pub scene: Scene,
+    pub signature: Signature,
+}
+
+impl Loaded {
+    /// Loads the job and its scene, and checks them as `render` does (the memory estimate
+    /// included).
+    pub fn load(path: &Path, overrides: &Overrides) -> Result<Loaded> {
+        let job = Job::load(path, overrides)?;
+        let scene = job.load_scene()?;
+        crate::budget::check(&job, &scene, None)?;
+        let signature = Signature::of(&job, &scene);
+        Ok(Loaded {
+            job,
+            scene,
+            signature,
+        })
+    }
+}
+
+/// The labels of the nodes (of any layer) that have a mesh, move as `motion` says, and
+/// differ between the scenes (the node itself or its mesh).
+fn changed_prims(old: &Scene, new: &Scene, motion: Motion) -> Vec<String> {
+    let mut out = Vec::new();
+    for (li, l) in new.layers.iter().enumerate() {
+        let ol = old.layers.get(li);
+        for (ni, n) in l.nodes.iter().enumerate() {
+            let Some(m) = n.mesh else { continue };
+            if n.motion != motion {
+                continue;
+            }
+            let same = ol.and_then(|ol| ol.nodes.get(ni)).is_some_and(|on| {
+                debug_hash(on) == debug_hash(n)
+                    && on.mesh.and_then(|om| ol?.meshes.get(om)).map(debug_hash)
+                        == l.meshes.get(m).map(debug_hash)
+            });
+            if !same {
+                out.push(l.node_label(ni));
+            }
+        }
+    }
+    out
+}
+
+/// What changed from `old` to `new`, and the rule for it ([`Rule`]); `what` is empty when
+/// nothing that the render reads changed.
+pub fn classify(old: &Loaded, new: &Loaded) -> Changes {
+    let (oj, nj) = (&old.job, &new.job);
+    let (os, ns) = (&old.scene, &new.scene);
+    let (osig, nsig) = (&old.signature, &new.signature);
+    let mut what = Vec::new();
+    let mut rule = Rule::Relight;
+    let mut note = |w: String, r: Rule, rule: &mut Rule| {
+        what.push(w);
+        *rule = (*rule).max(r);
+    };
+    // Settings the cache depends on.
+    let settings: [(&str, bool); 6] = [
+        (
+            "scene layers",
+            debug_hash(&oj.layers) != debug_hash(&nj.layers),
+        ),
+        ("resolution", (oj.width, oj.height) != (nj.width, nj.height)),
+        (
+            "fps",
+            (oj.fps, oj.frame_offset) != (nj.fps, nj.frame_offset),
+        ),
+        ("seed", oj.seed != nj.seed),
+        (
+            "render settings",
+            debug_hash(&oj.render) != debug_hash(&nj.render),
+        ),
+        ("method", debug_hash(&oj.method) != debug_hash(&nj.method)),
+    ];
+    for (name, changed) in settings {
+        if changed {
+            note(format!("setting {name}"), Rule::Rebuild, &mut rule);
+        }
+    }
+    if osig.statics != nsig.statics {
+        let prims = changed_prims(os, ns, Motion::Static);
+        if prims.is_empty() {
+            note("static geometry".into(), Rule::Rebuild, &mut rule);
+        }
+        for p in prims {
+            note(format!("static prim {p}"), Rule::Rebuild, &mut rule);
+        }
+    }
+    // Lights: the definitions, field by field, then their placement.
+    let mut lights_named = false;
+    for (li, l) in ns.layers.iter().enumerate() {
+        for (i, light) in l.lights.iter().enumerate() {
+            let Some(old) = os.layers.get(li).and_then(|ol| ol.lights.get(i)) else {
+                note(
+                    format!("light \"{}\" added", light.name),
+                    Rule::Relight,
+                    &mut rule,
+                );
+                lights_named = true;
+                continue;
+            };
+            let fields = [
+                ("intensity", old.intensity != light.intensity),
+                ("colour", old.color != light.color),
+                ("kind", old.kind != light.kind),
+                ("range", old.range != light.range),
+            ];
+            for (field, changed) in fields {
+                if changed {
+                    note(
+                        format!("light \"{}\" {field}", light.name),
+                        Rule::Relight,
+                        &mut rule,
+                    );
+                    lights_named = true;
+                }
+            }
+        }
+    }
+    if differ(&osig.lights, &nsig.lights) && !lights_named {
+        note("light placement".into(), Rule::Relight, &mut rule);
+    }
+    // Materials: an edit of emission alone is a light's.
+    let mut materials = false;
+    if os.materials.len() != ns.materials.len() {
+        note(
+            "materials added or removed".into(),
+            Rule::Relight,
+            &mut rule,
+        );
+        materials = true;
+    } else {
+        for (om, nm) in os.materials.iter().zip(ns.materials.iter()) {
+            if debug_hash(om) == debug_hash(nm) {
+                continue;
+            }
+            let mut emission_only = om.clone();
+            emission_only.emission = nm.emission;
+            emission_only.emissive_texture = nm.emissive_texture;
+            if om.alpha_cutoff.is_some() || nm.alpha_cutoff.is_some() {
+                // A cut-out material's alpha shapes geometry that rays see.
+                note(
+                    format!("material \"{}\" (alpha cut-out)", nm.name),
+                    Rule::Rebuild,
+                    &mut rule,
+                );
+            } else if debug_hash(&emission_only) == debug_hash(nm) {
+                note(
+                    format!("light \"{}\" (emissive material) emission", nm.name),
+                    Rule::Relight,
+                    &mut rule,
+                );
+            } else {
+                note(
+                    format!("material \"{}\"", nm.name),
+                    Rule::Relight,
+                    &mut rule,
+                );
+                materials = true;
+            }
+        }
+    }
+    if osig.textures != nsig.textures {
+        note("textures".into(), Rule::Relight, &mut rule);
+        materials = true;
+    }
+    if differ(&osig.dynamic, &nsig.dynamic) {
+        let mut prims = changed_prims(os, ns, Motion::Dynamic);
+        for (li, l) in ns.layers.iter().enumerate() {
+            for (ai, a) in l.animations.iter().enumerate() {
+                let same = os
+                    .layers
+                    .get(li)
+                    .and_then(|ol| ol.animations.get(ai))
+                    .is_some_and(|oa| debug_hash(oa) == debug_hash(a));
+                if !same {
+                    prims.push(format!("animation \"{}\"", a.name));
+                }
+            }
+        }
+        if prims.is_empty() {
+            note("dynamic geometry".into(), Rule::Dynamic, &mut rule);
+        }
+        for p in prims {
+            let p = if !p.starts_with("animation") {
+                format!("dynamic prim {p}")
+            } else {
+                p
+            };
+            note(p, Rule::Dynamic, &mut rule);
+        }
+    }
+    if differ(&osig.camera, &nsig.camera) {
+        note("camera".into(), Rule::Camera, &mut rule);
+    }
+    if (oj.frames.start, oj.frames.end) != (nj.frames.start, nj.frames.end) {
+        note(
+            format!("frames {}-{}", nj.frames.start, nj.frames.end),
+            Rule::Dynamic,
+            &mut rule,
+        );
+    }
+    let outputs = (&oj.out_dir, &oj.name, oj.exposure) != (&nj.out_dir, &nj.name, nj.exposure);
+    if outputs {
+        note("output settings".into(), Rule::Relight, &mut rule);
+    }
+    if nj.method.name != Method::Anchors {
+        rule = Rule::Rebuild;
+    }
+    Changes {
+        what,
+        rule,
+        materials,
+    }
+}
+
+/// The totals of one pass over the frame range.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Pass {
+    pub frames: usize,
+    pub seconds: f64,
+    pub gather_rays: u64,
+}
+
+/// The render side of a watch: resources and the state each frame left.
+#[derive(Default)]
+pub struct Renderer {
+    resources: Option<Resources>,
+    /// The state each frame of the range left after its last render.
+    states: BTreeMap<i32, FrameState>,
+    /// Seconds per frame of the last pass with a fresh state.
+    pub cold_per_frame: Option<f64>,
+}
+
+impl Renderer {
+    /// Renders and writes every frame of `new`'s range under `rule` (`None`: the first
+    /// render). `previous` is the job the resources were made for.
+    pub fn pass(
+        &mut self,
+        previous: Option<&Job>,
+        new: &Loaded,
+        rule: Option<Rule>,
+        materials: bool,
+        preview: bool,
+        quiet: bool,
+    ) -> Result<Pass> {
+        let (job, scene) = (&new.job, &new.scene);
+        crate::output::check_output_dir(&job.out_dir)?;
+        let fresh = rule.is_none_or(|r| r == Rule::Rebuild) || self.resources.is_none();
+        if fresh {
+            self.states.clear();
+            let same_visibility = previous.is_some_and(|p| {
+                p.method.name == job.method.name && p.render.visibility == job.render.visibility
+            });
+            self.resources = match self.resources.take() {
+                Some(r) if same_visibility => Some(Resources {
+                    statics: scene.statics(),
+                    visibility: r.visibility,
+                }),
+                _ => Some(pipeline::new_resources(job, scene)?),
+            };
+        }
+        let resources = self.resources.as_ref().expect("resources made above");
+        let max_age = job.method.params().cache.max_age;
+        let mut pass = Pass::default();
+        let mut carried: Option<FrameState> = None;
+        for frame in job.frames.start..=job.frames.end {
+            let t0 = Instant::now();
+            let (mut state, refresh) = if fresh {
+                (carried.take().unwrap_or_default(), Refresh::default())
+            } else if let Some(s) = self.states.get(&frame) {
+                let refresh = Refresh {
+                    relight_only: rule == Some(Rule::Relight),
+                    albedo: materials,
+                };
+                (s.clone(), refresh)
+            } else if let Some(s) = carried.take() {
+                (s, Refresh::default())
+            } else {
+                // A frame new to the range: the nearest state another frame left.
+                let near = self
+                    .states
+                    .range(..frame)
+                    .next_back()
+                    .or_else(|| self.states.range(frame..).next())
+                    .map(|(_, s)| s.clone());
+                let albedo = materials && near.is_some();
+                (
+                    near.unwrap_or_default(),
+                    Refresh {
+                        relight_only: false,
+                        albedo,
+                    },
+                )
+            };
+            let prune = rule == Some(Rule::Camera) && max_age > 0;
+            if prune {
+                // Unused records count as a frame old; the render marks the ones it uses.
+                for r in &mut state.cache.records {
+                    r.last_used = frame - 1;
+                }
+            }
+            let mut stats = pipeline::new_stats(job, frame);
+            let img = pipeline::render_frame_with(
+                job, scene, resources, &mut state, frame, &mut stats, refresh,
+            )?;
+            if prune {
+                // Drops the static records the new view did not use (and dynamic ones,
+                // which the next update drops anyway).
+                state.cache.expire(frame, 0);
+            }
+            stats.timings_s.total = t0.elapsed().as_secs_f64();
+            let written = pipeline::write_frame(job, frame, &img, &mut stats, preview)?;
+            pass.frames += 1;
+            pass.seconds += stats.timings_s.total;
+            pass.gather_rays += stats.counts.rays_shot;
+            if !quiet {
+                eprintln!(
+                    "anchorage: watch: frame {frame}: {:.2} s, {} gather rays -> {}",
+                    stats.timings_s.total,
+                    stats.counts.rays_shot,
+                    written.exr.display()
+                );
+            }
+            self.states.insert(frame, state.clone());
+            carried = Some(state);
+        }
+        // States of frames no longer in the range are kept: the range may come back.
+        if fresh && pass.frames > 0 {
+            self.cold_per_frame = Some(pass.seconds / pass.frames as f64);
+        }
+        Ok(pass)
+    }
+}
+
+/// `path` made absolute, its directory resolved (links, `..`) where it exists, so that it
+/// compares equal to the paths the watcher reports.
+fn normalize(path: &Path) -> PathBuf {
+    let abs = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    match (abs.parent(), abs.file_name()) {
+        (Some(dir), Some(name)) => std::fs::canonicalize(dir)
+            .map(|d| d.join(name))
+            .unwrap_or(abs),
+        _ => abs,
+    }
+}
+
+/// Whether a watcher event may mean new content (reads and opens do not).
+fn changes_content(kind: &EventKind) -> bool {
+    use notify::event::{AccessKind, AccessMode, MetadataKind, ModifyKind};
+    match kind {
+        EventKind::Access(AccessKind::Close(AccessMode::Write)) => true,
+        EventKind::Access(_) => false,
+        EventKind::Modify(ModifyKind::Metadata(MetadataKind::AccessTime)) => false,
+        _ => true,
+    }
+}
+
+/// The files a watch follows, and the directories it watches to see them.
+struct Watched {
+    files: BTreeSet<PathBuf>,
+    dirs: BTreeSet<PathBuf>,
+}
+
+/// Prints an error once: the same message again (a file still half-written after another
+/// save) stays quiet.
+#[derive(Default)]
+struct Reporter {
+    last: Option<String>,
+}
+
+impl Reporter {
+    /// Errors about the same element of the same file count as one (a file truncated at
+    /// another byte by the next save gives another message, not another error).
+    fn error(&mut self, e: &Error) {
+        let msg = e.to_string();
+        let key = match e {
+            Error::Input { file, at, .. } => format!("{}: {at}", file.display()),
+            _ => msg.clone(),
+        };
+        if self.last.as_deref() != Some(key.as_str()) {
+            eprintln!(
+                "anchorage: watch: error: {msg}; keeping the last good scene until the file \
+                 loads"
+            );
+            self.last = Some(key);
+        }
+    }
+
+    fn clear(&mut self) {
+        self.last = None;
+    }
+}
+
+/// The files to follow: the job, the layers it names (so that a missing one is seen when it
+/// appears) and every file the scene was read from.
+fn files_of(job_path: &Path, job: Option<&Job>, scene: Option<&Scene>) -> BTreeSet<PathBuf> {
+    let mut files = BTreeSet::from([normalize(job_path)]);
+    if let Some(job) = job {
+        files.extend(job.layers.iter().map(|l| normalize(&l.path)));
+    }
+    if let Some(scene) = scene {
+        files.extend(scene.files().map(normalize));
+    }
+    files
+}
+
+/// Runs the watch until a signal ends the process; returns only if the watcher itself
+/// cannot run.
+pub fn run(opts: &Options) -> Result<()> {
+    let (tx, rx) = mpsc::channel::<DebounceEventResult>();
+    let mut debouncer = new_debouncer(DEBOUNCE, None, tx)
+        .map_err(|e| Error::Render(format!("cannot watch files: {e}")))?;
+    let mut watched = Watched {
+        files: BTreeSet::new(),
+        dirs: BTreeSet::new(),
+    };
+    let mut rewatch = |files: BTreeSet<PathBuf>, watched: &mut Watched| {
+        let dirs: BTreeSet<PathBuf> = files
+            .iter()
+            .filter_map(|f| f.parent().map(Path::to_path_buf))
+            .collect();
+        for d in watched.dirs.difference(&dirs) {
+            let _ = debouncer.unwatch(d);
+        }
+        let mut now = BTreeSet::new();
+        for d in &dirs {
+            if watched.dirs.contains(d) || debouncer.watch(d, RecursiveMode::NonRecursive).is_ok() {
+                now.insert(d.clone());
+            }
+        }
+        watched.dirs = now;
+        watched.files = files;
+    };
+
+    let mut reporter = Reporter::default();
+    let mut renderer = Renderer::default();
+    let mut current: Option<Loaded> = None;
+    let mut reload = true;
+    loop {
+        if reload {
+            reload = false;
+            match Loaded::load(&opts.job, &opts.overrides) {
+                Ok(new) => {
+                    reporter.clear();
+                    rewatch(
+                        files_of(&opts.job, Some(&new.job), Some(&new.scene)),
+                        &mut watched,
+                    );
+                    let changes = current.as_ref().map(|old| classify(old, &new));
+                    match &changes {
+                        Some(c) if c.what.is_empty() => {
+                            eprintln!("anchorage: watch: saved without a change: no re-render");
+                        }
+                        _ => {
+                            if current.is_none() {
+                                for w in new.scene.warnings() {
+                                    eprintln!("anchorage: warning: {w}");
+                                }
+                            }
+                            let rule = changes.as_ref().map(|c| c.rule);
+                            let materials = changes.as_ref().is_some_and(|c| c.materials);
+                            let previous = current.as_ref().map(|c| &c.job);
+                            match renderer.pass(
+                                previous,
+                                &new,
+                                rule,
+                                materials,
+                                opts.preview,
+                                opts.quiet,
+                            ) {
+                                Ok(p) => log_pass(&new.job, changes.as_ref(), &p, &renderer),
+                                Err(e) => {
+                                    // The next change renders from scratch.
+                                    renderer.resources = None;
+                                    reporter.error(&e);
+                                }
+                            }
+                        }
+                    }
+                    current = Some(new);
+                }
+                Err(e) => {
+                    reporter.error(&e);
+                    // Keep following the last good scene's files, and the job's.
+                    let job = Job::load(&opts.job, &opts.overrides).ok();
+                    let mut files = files_of(
+                        &opts.job,
+                        job.as_ref().or(current.as_ref().map(|c| &c.job)),
+                        current.as_ref().map(|c| &c.scene),
+                    );
+                    if let Some(c) = &current {
+                        files.extend(files_of(&opts.job, Some(&c.job), None));
+                    }
+                    rewatch(files, &mut watched);
+                }
+            }
+            if current.is_none() && watched.dirs.is_empty() {
+                return Err(Error::Render(format!(
+                    "cannot watch the directory of {}",
+                    opts.job.display()
+                )));
+            }
+        }
+        // Wait for a change to one of the files; drain what else came meanwhile.
+        let Ok(first) = rx.recv() else {
+            return Err(Error::Render("the file watcher stopped".into()));
+        };
+        let mut batches = vec![first];
+        batches.extend(rx.try_iter());
+        for b in batches {
+            match b {
+                Ok(events) => {
+                    reload |= events.iter().any(|ev| {
+                        changes_content(&ev.event.kind)
+                            && ev.event.paths.iter().any(|p| {
+                                watched.files.contains(p) || watched.files.contains(&normalize(p))
+                            })
+                    });
+                }
+                Err(errors) => {
+                    for e in errors {
+                        eprintln!("anchorage: watch: warning: file watcher: {e}");
+                    }
+                    reload = true;
+                }
+            }
+        }
+    }
+}
+
+/// The one line per re-render: what changed, the rule, frames, seconds, gather rays and the
+/// time as a share of a cold render.
+fn log_pass(job: &Job, changes: Option<&Changes>, p: &Pass, r: &Renderer) {
+    let (what, rule) = match changes {
+        None => ("first render".to_string(), Rule::Rebuild),
+        Some(c) => (c.what.join(", "), c.rule),
+    };
+    let share = r
+        .cold_per_frame
+        .filter(|&c| c > 0.0 && p.frames > 0)
+        .map(|c| format!("{:.0} %", 100.0 * p.seconds / p.frames as f64 / c))
+        .unwrap_or_else(|| "-".into());
+    eprintln!(
+        "anchorage: watch: {what} -> rule {} ({}): frames {}-{}, {:.2} s, {} gather rays, {share} \
+         of a cold render",
+        rule.name(),
+        rule.explain(job.method.name),
+        job.frames.start,
+        job.frames.end,
+        p.seconds,
+        p.gather_rays,
+    );
+}

@@ -1,0 +1,338 @@
+//! `anchorage watch` on a temporary copy of the example room: each edit is seen, classified
+//! under the right rule, and re-rendered as a cold render of the edited files would look; a
+//! truncated file is reported once and leaves the frames alone; SIGTERM ends it cleanly.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+use super::common::{root, tempdir};
+
+/// A running `anchorage watch` and the lines it has logged.
+struct Watch {
+    child: Child,
+    lines: mpsc::Receiver<String>,
+    log: Vec<String>,
+}
+
+impl Watch {
+    fn start(job: &Path) -> Watch {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+            .args(["watch", "-q", "--threads", "2"])
+            .arg(job)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start anchorage watch");
+        let stderr = child.stderr.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Watch {
+            child,
+            lines: rx,
+            log: Vec::new(),
+        }
+    }
+
+    /// The next line that `want` accepts, waiting at most `secs`.
+    fn wait_for(&mut self, secs: u64, want: impl Fn(&str) -> bool) -> String {
+        let end = Instant::now() + Duration::from_secs(secs);
+        loop {
+            let left = end.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(l) => {
+                    self.log.push(l.clone());
+                    if want(&l) {
+                        return l;
+                    }
+                }
+                Err(_) => panic!(
+                    "no such line within {secs} s; the log:\n{}",
+                    self.log.join("\n")
+                ),
+            }
+        }
+    }
+
+    /// The next re-render's line.
+    fn render_line(&mut self) -> String {
+        self.wait_for(120, |l| l.contains(" -> rule "))
+    }
+
+    /// Lines logged within `secs`, without waiting for any in particular.
+    fn drain(&mut self, secs: f64) -> Vec<String> {
+        let end = Instant::now() + Duration::from_secs_f64(secs);
+        let mut got = Vec::new();
+        while let Ok(l) = self
+            .lines
+            .recv_timeout(end.saturating_duration_since(Instant::now()))
+        {
+            self.log.push(l.clone());
+            got.push(l);
+        }
+        got
+    }
+}
+
+impl Drop for Watch {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The gather rays a re-render line reports.
+fn gather_rays(line: &str) -> u64 {
+    let before = line.split(" gather rays").next().unwrap();
+    before.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
+/// One channel of an EXR, as f32.
+fn channel(path: &Path, name: &str) -> Vec<f32> {
+    use exr::prelude::FlatSamples;
+    let img = exr::prelude::read_all_flat_layers_from_file(path).unwrap();
+    let ch = img.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == name)
+        .unwrap_or_else(|| panic!("{}: no channel {name}", path.display()));
+    match &ch.sample_data {
+        FlatSamples::F32(v) => v.clone(),
+        FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        FlatSamples::U32(v) => v.iter().map(|&x| x as f32).collect(),
+    }
+}
+
+fn mean(v: &[f32]) -> f64 {
+    v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64
+}
+
+/// Writes the glTF as an editor's atomic save: a temporary file renamed over it.
+fn save_atomic(path: &Path, g: &Value) {
+    let tmp = path.with_extension("gltf.part");
+    std::fs::write(&tmp, serde_json::to_vec(g).unwrap()).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+/// Writes the glTF in place (truncate, then write), as simpler editors do.
+fn save_in_place(path: &Path, g: &Value) {
+    std::fs::write(path, serde_json::to_vec(g).unwrap()).unwrap();
+}
+
+/// Renders frame 0 of `job` cold (a plain `render`) into `out`; returns the EXR.
+fn cold_render(job: &Path, out: &Path) -> PathBuf {
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args(["render", "-q", "--threads", "2", "--frames", "0"])
+        .arg(job)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    out.join("room.0000.exr")
+}
+
+/// Relative difference of two means.
+fn rel(a: f64, b: f64) -> f64 {
+    (a - b).abs() / b.abs().max(1e-12)
+}
+
+#[test]
+fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
+    let dir = tempdir();
+    let gltf = dir.path().join("room.gltf");
+    std::fs::copy(root().join("examples/room/room.gltf"), &gltf).unwrap();
+    let job = dir.path().join("job.json");
+    std::fs::write(
+        &job,
+        r#"{"scene":[{"path":"room.gltf"}],"resolution":[64,48],"frames":{"start":0,"end":1},
+            "output":{"directory":"out","name":"room"},"seed":1,
+            "render":{"samples_per_pixel":2},"method":{"name":"anchors","preset":"draft"}}"#,
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let exr0 = out.join("room.0000.exr");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut w = Watch::start(&job);
+
+    // The first render.
+    let first = w.render_line();
+    assert!(first.contains("first render -> rule rebuild"), "{first}");
+    let cold_rays = gather_rays(&first);
+    assert!(cold_rays > 0, "{first}");
+    let beauty0 = mean(&channel(&exr0, "G"));
+    let ids0 = channel(&exr0, "anchor_id.V");
+
+    // A light: the lamp's emission doubled. Relight keeps every anchor link, traces only
+    // the strata on the dynamic cube, and matches a cold render of the edited room.
+    g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+        34.0.into();
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(
+        line.contains(r#"light "lamp" (emissive material) emission -> rule relight"#),
+        "{line}"
+    );
+    let rays = gather_rays(&line);
+    assert!(rays * 10 < cold_rays, "relight traced {rays} rays: {line}");
+    let beauty1 = mean(&channel(&exr0, "G"));
+    assert!(
+        beauty1 > 1.8 * beauty0,
+        "the lamp doubled: {beauty0} -> {beauty1}"
+    );
+    assert_eq!(
+        channel(&exr0, "anchor_id.V"),
+        ids0,
+        "relight changed the anchor links"
+    );
+    let cold = cold_render(&job, &dir.path().join("cold1"));
+    let (ind, ind_cold) = (
+        mean(&channel(&exr0, "indirect.G")),
+        mean(&channel(&cold, "indirect.G")),
+    );
+    assert!(
+        rel(ind, ind_cold) < 0.05,
+        "relit indirect {ind} against a cold render's {ind_cold}"
+    );
+
+    // A material: the white walls lose most of their red. Anchors read their albedo again.
+    g["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] =
+        serde_json::json!([0.2, 0.73, 0.73, 1.0]);
+    save_in_place(&gltf, &g);
+    let line = w.render_line();
+    assert!(
+        line.contains(r#"material "white" -> rule relight"#),
+        "{line}"
+    );
+    let rays = gather_rays(&line);
+    assert!(rays * 10 < cold_rays, "relight traced {rays} rays: {line}");
+    let cold = cold_render(&job, &dir.path().join("cold2"));
+    for c in ["indirect.R", "indirect.G"] {
+        let (ind, ind_cold) = (mean(&channel(&exr0, c)), mean(&channel(&cold, c)));
+        assert!(
+            rel(ind, ind_cold) < 0.05,
+            "{c}: relit {ind} against a cold render's {ind_cold}"
+        );
+    }
+
+    // The dynamic cube moved (its translation no longer animated): the visibility machinery
+    // re-shoots the strata that see it, fewer than half a cold render's rays (a fresh state
+    // would shoot about as many as the first render), more than a relight's.
+    let before = channel(&exr0, "G");
+    let anim = &mut g["animations"][0];
+    let channels = anim["channels"].as_array_mut().unwrap();
+    channels.remove(0);
+    for c in channels.iter_mut() {
+        c["sampler"] = (c["sampler"].as_u64().unwrap() - 1).into();
+    }
+    anim["samplers"].as_array_mut().unwrap().remove(0);
+    g["nodes"][6]["translation"] = serde_json::json!([-1.0, 0.35, 1.2]);
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(line.contains(r#"dynamic prim "cube""#), "{line}");
+    assert!(line.contains("-> rule dynamic"), "{line}");
+    let moved_rays = gather_rays(&line);
+    assert!(
+        moved_rays > rays && moved_rays * 2 < cold_rays,
+        "moving the cube traced {moved_rays} rays (relight {rays}, cold {cold_rays})"
+    );
+    let after = channel(&exr0, "G");
+    let changed = before
+        .iter()
+        .zip(&after)
+        .filter(|(a, b)| (*a - *b).abs() > 0.05 * a.abs().max(0.01))
+        .count();
+    assert!(
+        changed > before.len() / 50,
+        "only {changed} pixels changed after the cube moved"
+    );
+
+    // The camera's field of view narrowed: static records kept, new ones placed.
+    let before = channel(&exr0, "G");
+    let yfov = g["cameras"][0]["perspective"]["yfov"].as_f64().unwrap();
+    g["cameras"][0]["perspective"]["yfov"] = (0.8 * yfov).into();
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(line.contains("camera -> rule camera"), "{line}");
+    let camera_rays = gather_rays(&line);
+    assert!(
+        camera_rays * 2 < cold_rays,
+        "the camera edit traced {camera_rays} rays (cold {cold_rays})"
+    );
+    assert_ne!(channel(&exr0, "G"), before, "the frame did not change");
+    let before = channel(&exr0, "G");
+
+    // A save interrupted half-way (twice, at different bytes), then completed: one error,
+    // the frames untouched, then a re-render of the completed file.
+    let frames_before = std::fs::read(&exr0).unwrap();
+    g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+        17.0.into();
+    let whole = serde_json::to_vec(&g).unwrap();
+    std::fs::write(&gltf, &whole[..whole.len() / 3]).unwrap();
+    w.wait_for(60, |l| l.contains("error:"));
+    std::fs::write(&gltf, &whole[..whole.len() / 2]).unwrap();
+    std::fs::remove_file(&gltf).unwrap();
+    std::thread::sleep(Duration::from_millis(600));
+    let quiet = w.drain(2.0);
+    let errors = w.log.iter().filter(|l| l.contains("error:")).count();
+    assert_eq!(errors, 1, "the error is reported once: {:#?}", w.log);
+    let error = w.log.iter().find(|l| l.contains("error:")).unwrap();
+    assert!(
+        error.contains("room.gltf"),
+        "the error names the file: {error}"
+    );
+    assert!(quiet.iter().all(|l| !l.contains("-> rule")), "{quiet:?}");
+    assert_eq!(
+        std::fs::read(&exr0).unwrap(),
+        frames_before,
+        "a bad file changed the frames"
+    );
+    std::fs::write(&gltf, &whole).unwrap();
+    let line = w.render_line();
+    assert!(
+        line.contains(r#"light "lamp" (emissive material) emission -> rule relight"#),
+        "{line}"
+    );
+    assert!(mean(&channel(&exr0, "G")) < 0.7 * mean(&before));
+
+    // SIGTERM: exit 143, nothing but the frames left in the output directory.
+    let status = Command::new("kill")
+        .args(["-TERM", &w.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let t = Instant::now();
+    let code = loop {
+        if let Some(s) = w.child.try_wait().unwrap() {
+            break s.code();
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "SIGTERM ignored");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(code, Some(143));
+    let mut left: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        [
+            "room.0000.exr",
+            "room.0000.json",
+            "room.0001.exr",
+            "room.0001.json"
+        ]
+    );
+}
