@@ -377,8 +377,7 @@ impl GpuDepthMaps {
         let groups = self.max_groups as u64;
         (self.max_binding / QUERY_BYTES)
             .min(groups * groups * WORKGROUP)
-            .min(MAX_CHUNK)
-            .max(1) as usize
+            .clamp(1, MAX_CHUNK) as usize
     }
 
     /// Answers `queries` and counts those the shader left to the CPU.
