@@ -97,6 +97,30 @@ pub fn render(
     spp: u32,
     light_samples: u32,
 ) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
+    render_in_bands(
+        ctx,
+        state,
+        params,
+        method,
+        visibility,
+        (spp, light_samples),
+        Some(BAND_PIXELS),
+    )
+}
+
+/// [`render`] with bucketing's bands of `band_pixels` pixels, or (`None`) without bands:
+/// each shading point plans and answers its own depth queries on the CPU, as before the
+/// queries were batched. Public for the test that the two give the same bytes.
+#[doc(hidden)]
+pub fn render_in_bands(
+    ctx: &FrameContext,
+    state: CachedState,
+    params: &GiParams,
+    method: CachedMethod,
+    visibility: &dyn Visibility,
+    (spp, light_samples): (u32, u32),
+    band_pixels: Option<u32>,
+) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
     let mut st = CachedStats::default();
     let t = Instant::now();
     let pm = PhotonMap::trace(
@@ -149,8 +173,10 @@ pub fn render(
     };
     let mut wall = 0.0;
     let mut planning = 0.0;
-    let rows = if shading.anchors.is_some() && params.glossy.mode == GlossyMode::Bucketing {
-        let band_rows = (BAND_PIXELS / ctx.width.max(1)).max(1);
+    let bands = band_pixels
+        .filter(|_| shading.anchors.is_some() && params.glossy.mode == GlossyMode::Bucketing);
+    let rows = if let Some(band_pixels) = bands {
+        let band_rows = (band_pixels / ctx.width.max(1)).max(1);
         let mut rows = Vec::with_capacity(ctx.height as usize);
         for y0 in (0..ctx.height).step_by(band_rows as usize) {
             let band = y0..(y0 + band_rows).min(ctx.height);
