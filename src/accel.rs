@@ -87,7 +87,12 @@ fn padded(g: &Geometry) -> Vec<PaddedTriangle> {
 /// The static BVH, shared by every frame of a render.
 pub struct StaticBvh {
     bvh: Option<Bvh2>,
+    /// Unique within the process: what a GPU copy of this BVH is cached under.
+    id: u64,
 }
+
+/// Ids of [`StaticBvh`]s.
+static NEXT_STATIC_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 impl StaticBvh {
     pub fn build(g: &Geometry) -> Self {
@@ -98,7 +103,19 @@ impl StaticBvh {
                 &mut Duration::default(),
             )
         });
-        StaticBvh { bvh }
+        let id = NEXT_STATIC_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        StaticBvh { bvh, id }
+    }
+
+    /// Unique among the static BVHs built in this process (a rebuilt static set gets a new
+    /// one), so that a copy on the GPU can be reused across frames.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// The BVH itself (`None` without static geometry), for uploading to a GPU.
+    pub fn bvh2(&self) -> Option<&Bvh2> {
+        self.bvh.as_ref()
     }
 
     pub fn bytes(&self) -> usize {
@@ -297,6 +314,16 @@ impl Accel {
         Accel { statics, dynamic }
     }
 
+    /// The static BVH (shared by every frame).
+    pub fn statics(&self) -> &StaticBvh {
+        &self.statics
+    }
+
+    /// This frame's dynamic BVH (`None` without dynamic geometry).
+    pub fn dynamic_bvh2(&self) -> Option<&Bvh2> {
+        self.dynamic.as_ref()
+    }
+
     pub fn dynamic_bytes(&self) -> usize {
         self.dynamic.as_ref().map_or(0, |b| {
             b.nodes.len() * size_of_val(&b.nodes[0]) + b.primitive_indices.len() * 4
@@ -370,7 +397,7 @@ impl Accel {
 
 /// Turns negative zeros in a direction into positive ones: obvhs 0.4's CWBVH traversal
 /// misses axis-aligned rays whose zero components are negative (e.g. `-Vec3::Z`).
-fn canonical(dir: Vec3) -> Vec3 {
+pub fn canonical(dir: Vec3) -> Vec3 {
     dir + Vec3::ZERO
 }
 

@@ -150,6 +150,7 @@ pub fn render_frame_with(
             t.irradiance_estimation = gs.irradiance_estimation;
             t.final_gathering = gs.final_gathering;
             t.cache_interpolation = gs.cache_interpolation;
+            t.depth_maps = gs.depth_maps;
             t.direct_lighting = gs.direct_lighting;
             let c = &mut stats.counts;
             c.photons = gs.photons;

@@ -22,6 +22,10 @@ pub struct Timings {
     pub cache_interpolation: f64,
     /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).
     pub visibility: f64,
+    /// Answering anchor bucketing's hemisphere depth queries (`anchors` with glossy
+    /// surfaces, paper §5.1), where `visibility` runs. Not part of `cache_interpolation`.
+    #[serde(default)]
+    pub depth_maps: f64,
     /// Direct light at camera hits (for `path-trace`: the whole path tracing).
     pub direct_lighting: f64,
     pub output: f64,

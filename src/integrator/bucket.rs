@@ -12,22 +12,31 @@
 //! weights the cells. Only the cells that carry 99 % of the lobe's weight are mapped; the
 //! tail is lit by the cache's irradiance, as a wide lobe is.
 //!
-//! The depth map here is traced on the CPU (one closest-hit ray per mapped cell, no shading);
-//! the paper rasterises it on the GPU. A cell whose bucket is empty — no neighbouring record
-//! saw that part of the scene — takes the photon estimate at its depth ray's hit, as a
-//! final-gather hit would (counted in [`BucketStats::fallbacks`]).
+//! The depth map is one closest-hit query per mapped cell (its centre direction, from the
+//! point's offset origin); the paper rasterises it on the GPU. Bucketing runs in two steps so
+//! that the queries can be answered in batches: [`plan`] weighs the cells and lists the
+//! queries of one shading point, the cached shading collects the plans of a band of pixels
+//! and answers all their queries in one call to [`crate::visibility::depth::DepthMaps`] —
+//! on the GPU or the CPU, wherever visibility runs — and [`finish`] fills the buckets from
+//! the answers. With the CPU implementation the result is the one per-point tracing gives,
+//! bit for bit; the GPU's bounded difference is stated in [`crate::visibility::depth`]. A
+//! cell whose bucket is empty — no neighbouring record saw that part of the scene — takes
+//! the photon estimate at its depth query's hit, as a final-gather hit would (counted in
+//! [`BucketStats::fallbacks`]).
 
 use std::f32::consts::PI;
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use crate::accel::Hit;
 use crate::anchor::AnchorSet;
 use crate::bsdf::Bsdf;
 use crate::cache::IrradianceCache;
 use crate::geom::basis;
 use crate::interaction::SurfacePoint;
 use crate::scene::FrameScene;
+use crate::visibility::depth::DepthQuery;
 
 /// Cells per side of a cell's BRDF average (2 × 2 directions).
 const SUB: u32 = 2;
@@ -57,7 +66,7 @@ impl Default for BucketParams {
 /// What bucketing did at one shading point.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct BucketStats {
-    /// Depth-map rays traced.
+    /// Depth-map queries answered.
     pub rays: u64,
     /// Anchors projected onto the hemisphere.
     pub anchors: u64,
@@ -65,23 +74,52 @@ pub struct BucketStats {
     pub fallbacks: u64,
 }
 
-/// The glossy lobe's indirect light at `at` towards `wo` (`bsdf` its BRDF about the shading
-/// normal `ns`) from the anchors that the records valid at `at` (error threshold `a`) link,
-/// the lobe's tail from the cache's `irradiance` there;
-/// `None` where no record is valid there. `fallback` is the radiance estimate at a hit.
-#[allow(clippy::too_many_arguments)]
-pub fn glossy_indirect(
-    frame: &FrameScene,
+/// One shading point's bucketing before its depth map is known: the lobe's mapped cells
+/// with their BRDF weights, and the depth queries of those above the geometric horizon.
+#[derive(Debug, Clone)]
+pub struct BucketPlan {
+    /// The records valid at the point.
+    records: Vec<u32>,
+    position: Vec3,
+    /// The depth queries' origin (offset off the surface).
+    origin: Vec3,
+    ns: Vec3,
+    /// The lobe reflects nothing here: the result is zero.
+    black: bool,
+    /// Mapped cells in index order: cell, BRDF weight, and its query's index in `dirs`
+    /// (`None` below the geometric horizon: no depth, no fallback).
+    cells: Vec<(u32, Vec3, Option<u32>)>,
+    /// The depth queries' directions.
+    dirs: Vec<Vec3>,
+    /// The weight of the unmapped cells (lit by the cache's irradiance).
+    tail: Vec3,
+}
+
+impl BucketPlan {
+    /// The depth queries, in the order [`finish`] expects their answers.
+    pub fn queries(&self) -> impl Iterator<Item = DepthQuery> + '_ {
+        self.dirs.iter().map(|&dir| DepthQuery {
+            origin: self.origin,
+            dir,
+        })
+    }
+
+    pub fn query_count(&self) -> usize {
+        self.dirs.len()
+    }
+}
+
+/// Plans the glossy lobe's bucketing at `at` towards `wo` (`bsdf` its BRDF about the shading
+/// normal `ns`) from the records valid there (error threshold `a`): the BRDF's weight per cell,
+/// the cells that carry [`LOBE_SHARE`] of it, and one depth query per mapped cell above the
+/// geometric horizon. `None` where no record is valid.
+pub fn plan(
     cache: &IrradianceCache,
-    anchors: &AnchorSet,
     at: &SurfacePoint,
     (wo, ns, bsdf): (Vec3, Vec3, &Bsdf),
-    irradiance: Vec3,
     a: f32,
     p: &BucketParams,
-    fallback: &dyn Fn(&SurfacePoint) -> Vec3,
-    stats: &mut BucketStats,
-) -> Option<Vec3> {
+) -> Option<BucketPlan> {
     let records = cache.valid_records(at.position, at.ns, a);
     if records.is_empty() {
         return None;
@@ -95,6 +133,16 @@ pub fn glossy_indirect(
         let phi = 2.0 * PI * v;
         (t * (st * phi.cos()) + b * (st * phi.sin()) + ns * (1.0 - sin2).max(0.0).sqrt())
             .normalize()
+    };
+    let mut plan = BucketPlan {
+        records,
+        position: at.position,
+        origin: at.spawn(),
+        ns,
+        black: false,
+        cells: Vec::new(),
+        dirs: Vec::new(),
+        tail: Vec3::ZERO,
     };
     // The BRDF's weight per cell: its mean over SUB² directions × the cell's cosine-weighted
     // measure π/(MN).
@@ -115,7 +163,8 @@ pub fn glossy_indirect(
         }
     }
     if !(peak > 0.0) {
-        return Some(Vec3::ZERO);
+        plan.black = true;
+        return Some(plan);
     }
     // The cells that carry LOBE_SHARE of the lobe's weight, heaviest first.
     let lum = |w: &Vec3| w.x + w.y + w.z;
@@ -124,20 +173,14 @@ pub fn glossy_indirect(
     order.sort_by(|&x, &y| lum(&weight[y]).total_cmp(&lum(&weight[x])).then(x.cmp(&y)));
     let mut active = vec![false; cells];
     let mut acc = 0.0;
-    let mut tail = Vec3::ZERO;
     for c in order {
         if acc < LOBE_SHARE * total {
             active[c] = true;
             acc += lum(&weight[c]);
         } else {
-            tail += weight[c];
+            plan.tail += weight[c];
         }
     }
-    let o = at.spawn();
-    let mut depth = vec![f32::INFINITY; cells];
-    // Each mapped cell's depth-ray hit and direction: a surface point is made only for the
-    // cells whose bucket turns out empty.
-    let mut hits: Vec<Option<(crate::accel::Hit, Vec3)>> = vec![None; cells];
     for j in 0..mm {
         for k in 0..nn {
             let c = (j * nn + k) as usize;
@@ -145,38 +188,67 @@ pub fn glossy_indirect(
                 continue;
             }
             let d = dir((j as f32 + 0.5) / mm as f32, (k as f32 + 0.5) / nn as f32);
-            if d.dot(at.ng) <= 0.0 {
-                continue;
-            }
-            stats.rays += 1;
-            if let Some(h) = frame.accel.closest(
-                &frame.static_geometry,
-                &frame.dynamic_geometry,
-                o,
-                d,
-                f32::INFINITY,
-            ) {
-                depth[c] = h.t;
-                hits[c] = Some((h, d));
-            }
+            let query = (d.dot(at.ng) > 0.0).then(|| {
+                plan.dirs.push(d);
+                (plan.dirs.len() - 1) as u32
+            });
+            plan.cells.push((c as u32, weight[c], query));
+        }
+    }
+    Some(plan)
+}
+
+/// The glossy lobe's indirect light of a [`plan`] given the answers to its depth queries
+/// (`depth`, in the order of [`BucketPlan::queries`]): the anchors the valid records link,
+/// bucketed by cell and kept where nearer than D_bucket; each mapped cell's bucket mean
+/// weighted by the BRDF, an empty bucket's cell lit by `fallback` (the radiance estimate at
+/// its depth query's hit), and the lobe's tail by the cache's `irradiance`.
+#[allow(clippy::too_many_arguments)]
+pub fn finish(
+    frame: &FrameScene,
+    cache: &IrradianceCache,
+    anchors: &AnchorSet,
+    plan: &BucketPlan,
+    depth: &[Option<Hit>],
+    irradiance: Vec3,
+    p: &BucketParams,
+    fallback: &dyn Fn(&SurfacePoint) -> Vec3,
+    stats: &mut BucketStats,
+) -> Vec3 {
+    if plan.black {
+        return Vec3::ZERO;
+    }
+    stats.rays += plan.dirs.len() as u64;
+    let [mm, nn] = p.strata;
+    let cells = (mm * nn) as usize;
+    let ns = plan.ns;
+    let (t, b) = basis(ns);
+    // Per cell: its index in `plan.cells` (mapped cells only) and its depth.
+    let mut slot = vec![u32::MAX; cells];
+    let mut cell_depth = vec![f32::INFINITY; cells];
+    for (i, &(c, _, q)) in plan.cells.iter().enumerate() {
+        slot[c as usize] = i as u32;
+        if let Some(Some(h)) = q.and_then(|q| depth.get(q as usize)) {
+            cell_depth[c as usize] = h.t;
         }
     }
     // The anchors the neighbouring records link, each once.
-    let mut linked: Vec<u32> = records
+    let mut linked: Vec<u32> = plan
+        .records
         .iter()
         .flat_map(|&r| cache.records[r as usize].strata.iter())
         .filter_map(|s| s.link().map(|l| l.0))
         .collect();
     linked.sort_unstable();
     linked.dedup();
-    let mut sum = vec![Vec3::ZERO; cells];
-    let mut count = vec![0u32; cells];
+    let mut sum = vec![Vec3::ZERO; plan.cells.len()];
+    let mut count = vec![0u32; plan.cells.len()];
     for id in linked {
         let anchor = anchors.anchor(crate::anchor::AnchorId(id));
         if !anchor.is_live() {
             continue;
         }
-        let d = anchor.position(&anchors.quantizer) - at.position;
+        let d = anchor.position(&anchors.quantizer) - plan.position;
         let r = d.length();
         if !(r > 0.0) {
             continue;
@@ -191,27 +263,32 @@ pub fn glossy_indirect(
         let phi = w.dot(b).atan2(w.dot(t)).rem_euclid(2.0 * PI);
         let k = ((phi / (2.0 * PI) * nn as f32) as u32).min(nn - 1);
         let c = (j * nn + k) as usize;
-        if !active[c] || r > depth[c] * (1.0 + p.offset) {
+        let i = slot[c];
+        if i == u32::MAX || r > cell_depth[c] * (1.0 + p.offset) {
             continue;
         }
         stats.anchors += 1;
-        sum[c] += anchor.radiance();
-        count[c] += 1;
+        sum[i as usize] += anchor.radiance();
+        count[i as usize] += 1;
     }
-    let mut out = tail * irradiance * std::f32::consts::FRAC_1_PI;
-    for c in 0..cells {
-        if !active[c] {
-            continue;
-        }
-        let l = if count[c] > 0 {
-            sum[c] / count[c] as f32
-        } else if let Some((h, d)) = hits[c] {
+    let mut out = plan.tail * irradiance * std::f32::consts::FRAC_1_PI;
+    for (i, &(_, weight, q)) in plan.cells.iter().enumerate() {
+        let l = if count[i] > 0 {
+            sum[i] / count[i] as f32
+        } else if let Some(q) = q
+            && let Some(Some(h)) = depth.get(q as usize)
+        {
             stats.fallbacks += 1;
-            fallback(&SurfacePoint::new(frame, h, o, d))
+            fallback(&SurfacePoint::new(
+                frame,
+                *h,
+                plan.origin,
+                plan.dirs[q as usize],
+            ))
         } else {
             Vec3::ZERO
         };
-        out += weight[c] * l;
+        out += weight * l;
     }
-    Some(out)
+    out
 }

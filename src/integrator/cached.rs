@@ -4,6 +4,14 @@
 //! record and place new records ([`prepare_brute_force`]), anchors run Pseudocode 2
 //! ([`super::anchors::update`]). *Shade*: direct light by shadow rays at each camera hit, and
 //! the indirect light interpolated from the cache ([`CachedShading`]).
+//!
+//! With anchor bucketing (§5.1) the shade phase goes band by band (about [`BAND_PIXELS`]
+//! pixels each): a planning pass over the band's camera samples makes the same choices the
+//! shading will make and plans each bucketed shading point ([`super::bucket::plan`]); one
+//! call to the visibility implementation's [`DepthMaps`] answers all the band's depth
+//! queries (on the GPU where visibility runs there); then the band is shaded, each shading
+//! point finishing its plan in the same order. The planning pass costs a second camera ray
+//! per sample; the image is the one per-point tracing gives, bit for bit, with the CPU.
 
 use std::f32::consts::{FRAC_1_PI, PI};
 use std::time::Instant;
@@ -11,8 +19,9 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::anchors::AnchorStats;
-use super::bucket::BucketParams;
+use super::bucket::{BucketParams, BucketPlan};
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
+use crate::accel::Hit;
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::bsdf::Lobes;
 use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
@@ -21,6 +30,7 @@ use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
+use crate::visibility::depth::{CpuDepthMaps, DepthMaps, DepthQuery};
 use serde::{Deserialize, Serialize};
 
 /// The photon-mapping methods that shade from the irradiance cache.
@@ -57,6 +67,8 @@ pub struct CachedStats {
     pub irradiance_estimation: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
+    /// Answering anchor bucketing's depth queries (§5.1), wherever visibility runs.
+    pub depth_maps: f64,
     pub direct_lighting: f64,
     pub photons: u64,
     pub caches: u64,
@@ -98,6 +110,30 @@ pub fn render(
     spp: u32,
     light_samples: u32,
     refresh: Refresh,
+) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
+    render_in_bands(
+        ctx,
+        state,
+        params,
+        method,
+        visibility,
+        (spp, light_samples),
+        Some(BAND_PIXELS),
+    )
+}
+
+/// [`render`] with bucketing's bands of `band_pixels` pixels, or (`None`) without bands:
+/// each shading point plans and answers its own depth queries on the CPU, as before the
+/// queries were batched. Public for the test that the two give the same bytes.
+#[doc(hidden)]
+pub fn render_in_bands(
+    ctx: &FrameContext,
+    state: CachedState,
+    params: &GiParams,
+    method: CachedMethod,
+    visibility: &dyn Visibility,
+    (spp, light_samples): (u32, u32),
+    band_pixels: Option<u32>,
 ) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
     let mut st = CachedStats::default();
     let t = Instant::now();
@@ -155,7 +191,6 @@ pub fn render(
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
 
-    let t = Instant::now();
     let shading = CachedShading {
         cache,
         anchors: state.anchors.as_ref(),
@@ -163,9 +198,52 @@ pub fn render(
         params: &params.cache,
         light_samples,
         glossy: params.glossy,
+        pass: BucketPass::Shade(None),
     };
-    let (img, rows) = super::render_pixels(ctx, spp, &shading);
-    let wall = t.elapsed().as_secs_f64();
+    let mut wall = 0.0;
+    let mut planning = 0.0;
+    let bands = band_pixels
+        .filter(|_| shading.anchors.is_some() && params.glossy.mode == GlossyMode::Bucketing);
+    let rows = if let Some(band_pixels) = bands {
+        let band_rows = (band_pixels / ctx.width.max(1)).max(1);
+        let mut rows = Vec::with_capacity(ctx.height as usize);
+        for y0 in (0..ctx.height).step_by(band_rows as usize) {
+            let band = y0..(y0 + band_rows).min(ctx.height);
+            let t = Instant::now();
+            let planner = CachedShading {
+                pass: BucketPass::Plan,
+                ..shading
+            };
+            let planned = super::render_pixel_rows(ctx, spp, &planner, band.clone());
+            let first_pixel = band.start * ctx.width;
+            let plans = BandPlans::new(
+                first_pixel,
+                (band.len() as u32 * ctx.width) as usize,
+                planned.into_iter().flat_map(|(_, row)| row.plans),
+            );
+            planning += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let answers = visibility
+                .depth_maps()
+                .closest(ctx.scene, &plans.queries())?;
+            st.depth_maps += t.elapsed().as_secs_f64();
+            let plans = BandPlans { answers, ..plans };
+            let t = Instant::now();
+            let shader = CachedShading {
+                pass: BucketPass::Shade(Some(&plans)),
+                ..shading
+            };
+            rows.extend(super::render_pixel_rows(ctx, spp, &shader, band));
+            wall += t.elapsed().as_secs_f64();
+        }
+        rows
+    } else {
+        let t = Instant::now();
+        let rows = super::render_pixel_rows(ctx, spp, &shading, 0..ctx.height);
+        wall += t.elapsed().as_secs_f64();
+        rows
+    };
+    let (img, rows) = super::film::assemble(ctx.width, ctx.height, rows);
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
     used.sort_unstable();
     used.dedup();
@@ -175,7 +253,7 @@ pub fn render(
         .fold((0.0, 0.0), |(a, b), r| (a + r.t_direct, b + r.t_interp));
     st.uncached_samples = rows.iter().map(|r| r.uncached).sum();
     let frac = if td + ti > 0.0 { ti / (td + ti) } else { 0.0 };
-    st.cache_interpolation = wall * frac;
+    st.cache_interpolation = wall * frac + planning;
     st.direct_lighting = wall * (1.0 - frac);
     let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
     Ok((img, counts, st))
@@ -201,8 +279,85 @@ fn prepare_brute_force(
     );
 }
 
+/// Pixels per band of the bucketing passes (module doc): enough depth queries per call to
+/// keep a GPU busy (tens of thousands of shading points' worth), few enough plans to keep
+/// in memory (a few kilobytes each).
+pub const BAND_PIXELS: u32 = 8192;
+
+/// Which pass of the shade phase runs (module doc).
+#[derive(Clone, Copy)]
+enum BucketPass<'a> {
+    /// Plans bucketing at every shading point that will bucket; shades nothing.
+    Plan,
+    /// Shades, finishing each bucketed shading point's plan from the band's answers (`None`:
+    /// plans and answers on the spot, on the CPU).
+    Shade(Option<&'a BandPlans>),
+}
+
+/// A band's bucketing plans in the order the shading meets them, and their depth answers.
+struct BandPlans {
+    /// Index of the band's first pixel.
+    first_pixel: u32,
+    /// The plans of the band's pixel i are `starts[i]..starts[i + 1]`.
+    starts: Vec<usize>,
+    /// Each plan (`None` where no record was valid) and its answers' range.
+    plans: Vec<(Option<BucketPlan>, std::ops::Range<usize>)>,
+    answers: Vec<Option<Hit>>,
+}
+
+impl BandPlans {
+    /// Gathers the plans of a band of `pixels` pixels from `first_pixel`, given per plan its
+    /// pixel index, in pixel order.
+    fn new(
+        first_pixel: u32,
+        pixels: usize,
+        plans: impl Iterator<Item = (u32, Option<BucketPlan>)>,
+    ) -> Self {
+        let mut band = BandPlans {
+            first_pixel,
+            starts: vec![0; pixels + 1],
+            plans: Vec::new(),
+            answers: Vec::new(),
+        };
+        let mut queries = 0;
+        for (pixel, plan) in plans {
+            let i = (pixel - first_pixel) as usize;
+            if i < pixels {
+                band.starts[i + 1] += 1;
+            }
+            let n = plan.as_ref().map_or(0, BucketPlan::query_count);
+            band.plans.push((plan, queries..queries + n));
+            queries += n;
+        }
+        for i in 0..pixels {
+            band.starts[i + 1] += band.starts[i];
+        }
+        band
+    }
+
+    /// Every plan's depth queries, in order.
+    fn queries(&self) -> Vec<DepthQuery> {
+        self.plans
+            .iter()
+            .filter_map(|(p, _)| p.as_ref())
+            .flat_map(BucketPlan::queries)
+            .collect()
+    }
+
+    /// The plans of pixel `index` (empty outside the band).
+    fn of_pixel(&self, index: u32) -> std::ops::Range<usize> {
+        match index.checked_sub(self.first_pixel) {
+            Some(i) if (i as usize) + 1 < self.starts.len() => {
+                self.starts[i as usize]..self.starts[i as usize + 1]
+            }
+            _ => 0..0,
+        }
+    }
+}
+
 /// The shade phase of the cached methods: direct light by shadow rays, indirect light
 /// interpolated from the cache at the pixel centre's surface.
+#[derive(Clone, Copy)]
 pub struct CachedShading<'a> {
     pub cache: &'a IrradianceCache,
     /// `anchors`: the anchors, for bucketing.
@@ -211,6 +366,7 @@ pub struct CachedShading<'a> {
     pub params: &'a CacheParams,
     pub light_samples: u32,
     pub glossy: GlossyParams,
+    pass: BucketPass<'a>,
 }
 
 /// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7). Lobes
@@ -271,6 +427,8 @@ pub struct ShadeRow {
     t_direct: f64,
     t_interp: f64,
     uncached: u64,
+    /// The planning pass's bucketing plans, with their pixel's index.
+    plans: Vec<(u32, Option<BucketPlan>)>,
 }
 
 impl AsMut<RenderCounts> for ShadeRow {
@@ -298,6 +456,8 @@ pub struct CachedPixel {
     last: Option<(SurfaceKey, Vec3, CacheValue)>,
     /// The last bucketed glossy light, by surface.
     bucketed: Option<(SurfaceKey, Vec3, Option<Vec3>)>,
+    /// Shading: the pixel's bucketing plans not yet used, in the band's plans.
+    plans: std::ops::Range<usize>,
 }
 
 impl CachedPixel {
@@ -386,11 +546,17 @@ impl Shade for CachedShading<'_> {
             (x as f32 + 0.5) / ctx.width as f32,
             (y as f32 + 0.5) / ctx.height as f32,
         );
+        let index = y * ctx.width + x;
+        let plans = match self.pass {
+            BucketPass::Shade(Some(band)) => band.of_pixel(index),
+            _ => 0..0,
+        };
         CachedPixel {
-            index: y * ctx.width + x,
+            index,
             centre,
             last: None,
             bucketed: None,
+            plans,
         }
     }
 
@@ -402,6 +568,10 @@ impl Shade for CachedShading<'_> {
         hit: &CameraHit,
         acc: &mut Accumulator,
     ) {
+        if let BucketPass::Plan = self.pass {
+            self.plan_sample(ctx, pixel, row, hit);
+            return;
+        }
         let sp = &hit.sp;
         let t0 = Instant::now();
         let bsdf = hit.bsdf(ctx);
@@ -432,8 +602,13 @@ impl Shade for CachedShading<'_> {
                 let b = match pixel.bucketed {
                     Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
                     _ => {
+                        let planned = (!pixel.plans.is_empty()).then(|| {
+                            pixel.plans.start += 1;
+                            pixel.plans.start - 1
+                        });
                         let at = pixel.shading_point(ctx, key, sp);
-                        let v = self.bucketed(ctx, at, wo, value.irradiance, &mut row.counts);
+                        let v =
+                            self.bucketed(ctx, at, wo, value.irradiance, planned, &mut row.counts);
                         pixel.bucketed = Some((key, sp.ns, v));
                         v
                     }
@@ -481,35 +656,88 @@ impl CachedShading<'_> {
         }
     }
 
-    /// Anchor bucketing at `at` for light leaving towards `wo` ([`super::bucket`]); `None`
-    /// where no record is valid there.
+    /// The planning pass at one camera hit: the choices [`Shade::sample`] makes up to
+    /// bucketing, and the plan where it buckets a new surface.
+    fn plan_sample(
+        &self,
+        ctx: &FrameContext,
+        pixel: &mut CachedPixel,
+        row: &mut ShadeRow,
+        hit: &CameraHit,
+    ) {
+        let sp = &hit.sp;
+        if self.glossy_path(&hit.bsdf(ctx)) != GlossyPath::Bucket {
+            return;
+        }
+        let key = Self::key(ctx, sp);
+        if matches!(pixel.bucketed, Some((k, n, _)) if k == key && n.dot(sp.ns) > 0.999) {
+            return;
+        }
+        let at = pixel.shading_point(ctx, key, sp);
+        let plan = self.plan(ctx, at, hit.wo());
+        row.plans.push((pixel.index, plan));
+        pixel.bucketed = Some((key, sp.ns, None));
+    }
+
+    /// Bucketing's plan at `at` for light leaving towards `wo` ([`super::bucket::plan`]).
+    fn plan(&self, ctx: &FrameContext, at: &SurfacePoint, wo: Vec3) -> Option<BucketPlan> {
+        let bsdf = at.bsdf(ctx.materials);
+        let ns = at.shading_normal(wo);
+        super::bucket::plan(
+            self.cache,
+            at,
+            (wo, ns, &bsdf),
+            self.params.error,
+            &self.glossy.bucket,
+        )
+    }
+
+    /// Anchor bucketing at `at` for light leaving towards `wo` ([`super::bucket`]): the
+    /// band's plan `planned` with its answers, or (without one) planned and answered here on
+    /// the CPU; `None` where no record is valid there.
     fn bucketed(
         &self,
         ctx: &FrameContext,
         at: &SurfacePoint,
         wo: Vec3,
         irradiance: Vec3,
+        planned: Option<usize>,
         counts: &mut RenderCounts,
     ) -> Option<Vec3> {
         let anchors = self.anchors?;
-        let bsdf = at.bsdf(ctx.materials);
-        let ns = at.shading_normal(wo);
+        let band = match self.pass {
+            BucketPass::Shade(Some(band)) => Some(band),
+            _ => None,
+        };
+        let here;
+        let (plan, depth) = match (band, planned) {
+            (Some(band), Some(i)) => {
+                let (plan, range) = band.plans.get(i)?;
+                (plan.as_ref()?, band.answers.get(range.clone())?)
+            }
+            _ => {
+                let plan = self.plan(ctx, at, wo)?;
+                let queries: Vec<DepthQuery> = plan.queries().collect();
+                let depth = CpuDepthMaps.closest(ctx.scene, &queries).ok()?;
+                here = (plan, depth);
+                (&here.0, &here.1[..])
+            }
+        };
         let mut st = super::bucket::BucketStats::default();
         let fallback = |y: &SurfacePoint| self.estimate.radiance(y, ctx.materials);
-        let v = super::bucket::glossy_indirect(
+        let v = super::bucket::finish(
             ctx.scene,
             self.cache,
             anchors,
-            at,
-            (wo, ns, &bsdf),
+            plan,
+            depth,
             irradiance,
-            self.params.error,
             &self.glossy.bucket,
             &fallback,
             &mut st,
         );
         counts.glossy_rays += st.rays;
-        v
+        Some(v)
     }
 
     /// The glossy lobe's indirect light at a camera hit by importance-sampled reflection

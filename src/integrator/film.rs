@@ -212,14 +212,26 @@ pub fn render_rows<S: Default + Send>(
     height: u32,
     shade: impl Fn(u32, u32, &mut S) -> Pixel + Sync,
 ) -> (FrameImage, Vec<S>) {
-    let rows: Vec<(Vec<Pixel>, S)> = (0..height)
-        .into_par_iter()
+    assemble(width, height, shade_rows(width, 0..height, shade))
+}
+
+/// The pixels of rows `rows` with `shade(x, y, row_state)`, rows in parallel, in order.
+pub fn shade_rows<S: Default + Send>(
+    width: u32,
+    rows: std::ops::Range<u32>,
+    shade: impl Fn(u32, u32, &mut S) -> Pixel + Sync,
+) -> Vec<(Vec<Pixel>, S)> {
+    rows.into_par_iter()
         .map(|y| {
             let mut state = S::default();
             let row = (0..width).map(|x| shade(x, y, &mut state)).collect();
             (row, state)
         })
-        .collect();
+        .collect()
+}
+
+/// The image of all `height` rows from [`shade_rows`] (top row first) and each row's state.
+pub fn assemble<S>(width: u32, height: u32, rows: Vec<(Vec<Pixel>, S)>) -> (FrameImage, Vec<S>) {
     let n = (width * height) as usize;
     let mut img = FrameImage {
         width,

@@ -289,8 +289,23 @@ pub fn render_pixels<S: Shade>(
     spp: u32,
     method: &S,
 ) -> (FrameImage, Vec<S::Row>) {
+    film::assemble(
+        ctx.width,
+        ctx.height,
+        render_pixel_rows(ctx, spp, method, 0..ctx.height),
+    )
+}
+
+/// [`render_pixels`] for the rows `rows` only: each row's pixels and state, in order (a
+/// method that prepares work per band of rows joins them with [`film::assemble`]).
+pub fn render_pixel_rows<S: Shade>(
+    ctx: &FrameContext,
+    spp: u32,
+    method: &S,
+    rows: std::ops::Range<u32>,
+) -> Vec<(Vec<Pixel>, S::Row)> {
     let (w, h) = (ctx.width, ctx.height);
-    film::render_rows(w, h, |x, y, row: &mut S::Row| {
+    film::shade_rows(w, rows, |x, y, row: &mut S::Row| {
         let sampler = Sampler::new(ctx.seed, ctx.frame, Stream::Camera, y * w + x);
         let mut acc = Accumulator::default();
         let mut pixel = method.begin_pixel(ctx, x, y);

@@ -40,4 +40,8 @@ impl Visibility for CpuVisibility {
             })
             .collect())
     }
+
+    fn depth_maps(&self) -> &dyn super::depth::DepthMaps {
+        &super::depth::CpuDepthMaps
+    }
 }

@@ -20,6 +20,7 @@ use std::borrow::Cow;
 use glam::Vec3;
 use wgpu::util::DeviceExt;
 
+use super::depth_gpu::GpuDepthMaps;
 use super::{
     CpuVisibility, DynamicSet, Error, GPU_SLACK, Hemisphere, MIN_CAP_COS, RecordFrame, StrataBits,
     Visibility, VisibilityChoice,
@@ -53,6 +54,8 @@ pub struct GpuVisibility {
     info: wgpu::AdapterInfo,
     max_groups: u32,
     max_binding: u64,
+    /// Depth maps for anchor bucketing (§5.1) on the same device.
+    depth: GpuDepthMaps,
 }
 
 /// Whether an adapter is a hardware GPU (not a CPU-emulated one such as lavapipe).
@@ -141,7 +144,9 @@ impl GpuVisibility {
             compilation_options: Default::default(),
             cache: None,
         });
+        let depth = GpuDepthMaps::new(device.clone(), queue.clone(), info.clone(), &limits);
         Ok(GpuVisibility {
+            depth,
             device,
             queue,
             pipeline,
@@ -162,6 +167,11 @@ impl GpuVisibility {
 
     pub fn adapter(&self) -> &wgpu::AdapterInfo {
         &self.info
+    }
+
+    /// The depth maps on this device.
+    pub fn depth(&self) -> &GpuDepthMaps {
+        &self.depth
     }
 
     fn buffer(&self, label: &str, contents: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
@@ -341,6 +351,10 @@ impl Visibility for GpuVisibility {
         drop(view);
         b_read.unmap();
         Ok(bits)
+    }
+
+    fn depth_maps(&self) -> &dyn super::depth::DepthMaps {
+        &self.depth
     }
 }
 

@@ -38,12 +38,14 @@
 //! alpha test, which the ray tracer applies to every ray), and a stratum no dynamic triangle
 //! covers at all cannot see a dynamic prim through or around a cut-out either.
 //!
-//! The same machinery serves other hemisphere projections: [`Hemisphere`] is the cell
-//! layout and [`cover`] enumerates the cells a triangle may cover; a depth map for anchor
-//! bucketing on glossy surfaces (§5.1) would keep the nearest distance per cell instead of
-//! a bit.
+//! The hemisphere depth maps of anchor bucketing on glossy surfaces (§5.1) live beside it
+//! ([`depth`]): the same two implementations on the same device, one closest-hit query per
+//! mapped cell instead of one bit per stratum. Every [`Visibility`] hands out its
+//! [`depth::DepthMaps`], so depth maps run where visibility runs.
 
 pub mod cpu;
+pub mod depth;
+pub mod depth_gpu;
 pub mod gpu;
 
 use glam::Vec3;
@@ -69,6 +71,15 @@ pub enum Error {
     TooLarge {
         records: usize,
         triangles: usize,
+        limit: u64,
+    },
+    /// A buffer the GPU needs (named) exceeds the adapter's storage binding size.
+    #[error(
+        "{what} need {bytes} bytes, more than the adapter's storage buffer binding size ({limit} bytes); --visibility cpu has no such limit"
+    )]
+    BufferTooLarge {
+        what: String,
+        bytes: u64,
         limit: u64,
     },
     /// Running the shader or reading its flags back failed.
@@ -190,6 +201,9 @@ pub trait Visibility: Send + Sync {
         strata: [u32; 2],
         set: &DynamicSet,
     ) -> Result<Vec<StrataBits>, Error>;
+
+    /// The depth maps of anchor bucketing (§5.1) on the same device ([`depth`]).
+    fn depth_maps(&self) -> &dyn depth::DepthMaps;
 }
 
 /// θ limits of row j of M cosine-weighted strata: sin²θ from j/M to (j+1)/M.
