@@ -119,6 +119,7 @@ pub fn render(
         visibility,
         (spp, light_samples),
         Some(BAND_PIXELS),
+        refresh,
     )
 }
 
@@ -126,6 +127,7 @@ pub fn render(
 /// each shading point plans and answers its own depth queries on the CPU, as before the
 /// queries were batched. Public for the test that the two give the same bytes.
 #[doc(hidden)]
+#[allow(clippy::too_many_arguments)] // `render`'s, plus the band size
 pub fn render_in_bands(
     ctx: &FrameContext,
     state: CachedState,
@@ -134,6 +136,7 @@ pub fn render_in_bands(
     visibility: &dyn Visibility,
     (spp, light_samples): (u32, u32),
     band_pixels: Option<u32>,
+    refresh: Refresh,
 ) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
     let mut st = CachedStats::default();
     let t = Instant::now();

@@ -524,6 +524,7 @@ fn bucketing_in_bands_gives_the_same_bytes_as_per_point_depth_maps() {
             resources.visibility.as_ref(),
             (job.render.samples_per_pixel, job.render.light_samples),
             bands,
+            cached::Refresh::default(),
         )
         .unwrap();
         (img, counts.glossy_rays)
