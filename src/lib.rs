@@ -17,7 +17,8 @@
 //! - [`session`]: the state a frame hands to the next;
 //! - [`job`], [`stats`], [`output`], [`checkpoint`] (the state on disk), [`pipeline`] (the
 //!   frame loop), [`inspect`],
-//!   [`compare`] and [`farm`] (chunked farm jobs), driven by the thin `main`.
+//!   [`compare`], [`farm`] (chunked farm jobs) and [`watch`] (re-render on change), driven
+//!   by the thin `main`.
 
 // `!(x > 0.0)` is deliberate throughout: it rejects NaN as well as non-positive values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
