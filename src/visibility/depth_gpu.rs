@@ -352,23 +352,9 @@ impl GpuDepthMaps {
             pass.dispatch_workgroups(groups_x as u32, groups_y as u32, 1);
         }
         encoder.copy_buffer_to_buffer(&b_hits, 0, &b_read, 0, out_bytes);
-        self.queue.submit([encoder.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        b_read
-            .slice(..)
-            .map_async(wgpu::MapMode::Read, move |r| drop(tx.send(r)));
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| self.failed(e))?;
-        rx.recv()
-            .map_err(|e| self.failed(e))?
-            .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
-        let view = b_read
-            .get_mapped_range(..)
-            .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
-        let raw: Vec<[u32; 2]> = bytemuck::cast_slice(&view).to_vec();
-        drop(view);
-        b_read.unmap();
+        let raw: Vec<[u32; 2]> =
+            super::gpu::submit_and_read(&self.device, &self.queue, encoder, &b_read)
+                .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
         Ok(raw)
     }
 
