@@ -29,6 +29,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_lights_punctual",
     "KHR_materials_emissive_strength",
     "KHR_texture_transform",
+    "KHR_materials_specular",
 ];
 
 /// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out

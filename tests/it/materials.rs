@@ -744,3 +744,27 @@ fn unmodelled_material_features_are_warned_about_once_each() {
         );
     }
 }
+
+/// `KHR_materials_specular` is read (its `specularFactor`), so a file that declares it used
+/// loads without the warning that it is ignored.
+#[test]
+fn khr_materials_specular_is_a_supported_extension() {
+    let dir = super::common::tempdir();
+    let text =
+        std::fs::read_to_string(super::common::root().join("examples/room/room.gltf")).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_str(&text).unwrap();
+    doc["extensionsUsed"] = serde_json::json!(["KHR_materials_specular"]);
+    doc["materials"][0]["extensions"] =
+        serde_json::json!({"KHR_materials_specular": {"specularFactor": 0.5}});
+    std::fs::write(dir.path().join("room.gltf"), doc.to_string()).unwrap();
+    let job = dir.path().join("job.json");
+    std::fs::write(
+        &job,
+        r#"{"scene":[{"path":"room.gltf"}],"resolution":[8,8]}"#,
+    )
+    .unwrap();
+    let o = super::common::run(&["validate", job.to_str().unwrap()]);
+    let err = super::common::stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("KHR_materials_specular"), "{err}");
+}
