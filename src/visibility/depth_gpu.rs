@@ -352,9 +352,8 @@ impl GpuDepthMaps {
             pass.dispatch_workgroups(groups_x as u32, groups_y as u32, 1);
         }
         encoder.copy_buffer_to_buffer(&b_hits, 0, &b_read, 0, out_bytes);
-        let raw: Vec<[u32; 2]> =
-            super::gpu::submit_and_read(&self.device, &self.queue, encoder, &b_read)
-                .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
+        let raw: Vec<[u32; 2]> = submit_and_read(&self.device, &self.queue, encoder, &b_read)
+            .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
         Ok(raw)
     }
 
@@ -444,6 +443,31 @@ impl DepthMaps for GpuDepthMaps {
     ) -> Result<Vec<Option<Hit>>, Error> {
         self.closest_counting(frame, queries).map(|(h, _)| h)
     }
+}
+
+/// Submits `encoder` (for the depth maps here and for visibility in `gpu.rs`), whose last command copies results into `read` (a `MAP_READ` buffer),
+/// waits for the device and returns `read`'s contents.
+pub(super) fn submit_and_read<T: bytemuck::Pod>(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    encoder: wgpu::CommandEncoder,
+    read: &wgpu::Buffer,
+) -> Result<Vec<T>, String> {
+    queue.submit([encoder.finish()]);
+    let (tx, rx) = std::sync::mpsc::channel();
+    read.slice(..)
+        .map_async(wgpu::MapMode::Read, move |r| drop(tx.send(r)));
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| e.to_string())?;
+    rx.recv()
+        .map_err(|e| e.to_string())?
+        .map_err(|e| e.to_string())?;
+    let view = read.get_mapped_range(..).map_err(|e| e.to_string())?;
+    let out = bytemuck::cast_slice(&view).to_vec();
+    drop(view);
+    read.unmap();
+    Ok(out)
 }
 
 #[cfg(test)]

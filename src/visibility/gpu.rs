@@ -323,8 +323,9 @@ impl Visibility for GpuVisibility {
             }
         }
         encoder.copy_buffer_to_buffer(&b_flags, 0, &b_read, 0, out_bytes);
-        let words_read: Vec<u32> = submit_and_read(&self.device, &self.queue, encoder, &b_read)
-            .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
+        let words_read: Vec<u32> =
+            super::depth_gpu::submit_and_read(&self.device, &self.queue, encoder, &b_read)
+                .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
         let bits = words_read
             .chunks(words)
             .map(|w| {
@@ -341,31 +342,6 @@ impl Visibility for GpuVisibility {
     fn depth_maps(&self) -> &dyn super::depth::DepthMaps {
         &self.depth
     }
-}
-
-/// Submits `encoder`, whose last command copies results into `read` (a `MAP_READ` buffer),
-/// waits for the device and returns `read`'s contents.
-pub(super) fn submit_and_read<T: bytemuck::Pod>(
-    device: &wgpu::Device,
-    queue: &wgpu::Queue,
-    encoder: wgpu::CommandEncoder,
-    read: &wgpu::Buffer,
-) -> Result<Vec<T>, String> {
-    queue.submit([encoder.finish()]);
-    let (tx, rx) = std::sync::mpsc::channel();
-    read.slice(..)
-        .map_async(wgpu::MapMode::Read, move |r| drop(tx.send(r)));
-    device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| e.to_string())?;
-    rx.recv()
-        .map_err(|e| e.to_string())?
-        .map_err(|e| e.to_string())?;
-    let view = read.get_mapped_range(..).map_err(|e| e.to_string())?;
-    let out = bytemuck::cast_slice(&view).to_vec();
-    drop(view);
-    read.unmap();
-    Ok(out)
 }
 
 /// The visibility implementation for `choice`. `auto` takes a hardware
