@@ -168,15 +168,7 @@ pub fn update(
         importance: importons.as_ref(),
     };
 
-    let t = Instant::now();
-    let (todo, hits) = reshoot(ctx.scene, cache, &flags, cp);
-    timings.final_gathering += t.elapsed().as_secs_f64();
-    st.rays_reshot = todo.iter().map(|l| l.len() as u64).sum();
-    timings.rays += st.rays_reshot;
-
-    let t = Instant::now();
-    update_records(&att, set, cache, &todo, hits, cp, ctx.frame);
-    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &flags, cp, timings);
 
     place_records(ctx, &att, set, cache, cp, timings);
 
@@ -233,20 +225,12 @@ pub fn relight(
         scale: ctx.scene.static_radius(),
         importance: None,
     };
-    let t = Instant::now();
     let none: Vec<StrataBits> = cache
         .records
         .iter()
         .map(|r| StrataBits::new(r.strata.len()))
         .collect();
-    let (todo, hits) = reshoot(ctx.scene, cache, &none, cp);
-    timings.final_gathering += t.elapsed().as_secs_f64();
-    st.rays_reshot = todo.iter().map(|l| l.len() as u64).sum();
-    timings.rays += st.rays_reshot;
-
-    let t = Instant::now();
-    update_records(&att, set, cache, &todo, hits, cp, ctx.frame);
-    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, cp, timings);
 
     let refs = anchor_references(set, cache);
     st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
@@ -377,6 +361,28 @@ fn flag_strata(
 
 /// Re-traces the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode
 /// 2): per record, the strata re-traced and their hits.
+/// Re-traces the strata `flags` marks and those [`reshoot`] adds, then updates the records
+/// from the new hits ([`update_records`]); the timings of both, and the rays traced.
+fn reshoot_and_update(
+    ctx: &FrameContext,
+    att: &Attacher,
+    set: &mut AnchorSet,
+    cache: &mut IrradianceCache,
+    flags: &[StrataBits],
+    cp: &CacheParams,
+    timings: &mut GatherTimings,
+) -> u64 {
+    let t = Instant::now();
+    let (todo, hits) = reshoot(ctx.scene, cache, flags, cp);
+    timings.final_gathering += t.elapsed().as_secs_f64();
+    let rays = todo.iter().map(|l| l.len() as u64).sum();
+    timings.rays += rays;
+    let t = Instant::now();
+    update_records(att, set, cache, &todo, hits, cp, ctx.frame);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    rays
+}
+
 fn reshoot(
     frame: &FrameScene,
     cache: &IrradianceCache,

@@ -616,6 +616,39 @@ mod tests {
 
     use crate::geom::push_quad as quad;
 
+    /// The photon map of `g`, every surface black, under a sun of irradiance 1 shining along
+    /// `direction`: `photons` photons, none of which bounces.
+    fn black_under_a_sun(g: Geometry, direction: Vec3, photons: u32) -> PhotonMap {
+        let black = Material {
+            base_color: Vec4::new(0.0, 0.0, 0.0, 1.0),
+            ..Material::default()
+        };
+        let surfaces = Surfaces {
+            materials: vec![black].into(),
+            textures: Vec::new().into(),
+        };
+        let sun = PunctualLight {
+            kind: LightKind::Directional,
+            position: Vec3::ZERO,
+            direction,
+            intensity: Vec3::ONE,
+            range: None,
+        };
+        let camera = FrameCamera::look_at(Vec3::new(3.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y, 1.0, 1.0);
+        let frame = FrameScene::new(
+            &StaticSet::new(g),
+            Geometry::default(),
+            vec![sun],
+            camera,
+            &surfaces,
+        );
+        let m = Materials {
+            materials: &surfaces.materials,
+            textures: &surfaces.textures,
+        };
+        PhotonMap::trace(&frame, m, photons, 3, 8, 0.05)
+    }
+
     /// The example room's dashed seam, reduced: a floor (y = 0, x ≥ 0) meeting a wall (x = 0, facing +x),
     /// both black, under a sun shining along (−0.6, −0.8, 0) with irradiance 1 at normal
     /// incidence: the floor's irradiance is 0.8 and the wall's 0.6 everywhere, right up to
@@ -643,34 +676,7 @@ mod tests {
             Vec3::new(0.0, l, l),
             Vec3::new(0.0, 0.0, l),
         );
-        let black = Material {
-            base_color: Vec4::new(0.0, 0.0, 0.0, 1.0),
-            ..Material::default()
-        };
-        let surfaces = Surfaces {
-            materials: vec![black].into(),
-            textures: Vec::new().into(),
-        };
-        let sun = PunctualLight {
-            kind: LightKind::Directional,
-            position: Vec3::ZERO,
-            direction: Vec3::new(-0.6, -0.8, 0.0),
-            intensity: Vec3::ONE,
-            range: None,
-        };
-        let camera = FrameCamera::look_at(Vec3::new(3.0, 2.0, 0.0), Vec3::ZERO, Vec3::Y, 1.0, 1.0);
-        let frame = FrameScene::new(
-            &StaticSet::new(g),
-            Geometry::default(),
-            vec![sun],
-            camera,
-            &surfaces,
-        );
-        let m = Materials {
-            materials: &surfaces.materials,
-            textures: &surfaces.textures,
-        };
-        let pm = PhotonMap::trace(&frame, m, 400_000, 3, 8, 0.05);
+        let pm = black_under_a_sun(g, Vec3::new(-0.6, -0.8, 0.0), 400_000);
         let k = 64;
         // Mean estimate at distance d from the crease, over 81 points along it.
         let along = |d: f32, on_wall: bool| {
@@ -761,34 +767,7 @@ mod tests {
         for s in &mut g.shading {
             s.normals = [ns; 3];
         }
-        let black = Material {
-            base_color: Vec4::new(0.0, 0.0, 0.0, 1.0),
-            ..Material::default()
-        };
-        let surfaces = Surfaces {
-            materials: vec![black].into(),
-            textures: Vec::new().into(),
-        };
-        let sun = PunctualLight {
-            kind: LightKind::Directional,
-            position: Vec3::ZERO,
-            direction: Vec3::NEG_Y,
-            intensity: Vec3::ONE,
-            range: None,
-        };
-        let camera = FrameCamera::look_at(Vec3::new(0.0, 3.0, 3.0), Vec3::ZERO, Vec3::Y, 1.0, 1.0);
-        let frame = FrameScene::new(
-            &StaticSet::new(g),
-            Geometry::default(),
-            vec![sun],
-            camera,
-            &surfaces,
-        );
-        let m = Materials {
-            materials: &surfaces.materials,
-            textures: &surfaces.textures,
-        };
-        let pm = PhotonMap::trace(&frame, m, 200_000, 3, 8, 0.05);
+        let pm = black_under_a_sun(g, Vec3::NEG_Y, 200_000);
         let mut e = 0.0;
         for i in 0..81 {
             let x = Vec3::new(
