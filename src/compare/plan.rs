@@ -55,10 +55,13 @@ pub enum Setting {
     Glossy(GlossyMode),
     /// Importance-sampled glossy rays per camera sample (`glossy_rays`).
     GlossyRays(u32),
+    /// Anchor bucketing's θ × φ cells (`glossy_bucket_strata`), with `glossy_mode` bucketing
+    /// (the cells mean nothing otherwise).
+    BucketStrata([u32; 2]),
 }
 
 const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k=, visibility=, \
-                        glossy=bucketing|importance or glossy_rays= with comma-separated values";
+                        glossy=bucketing|importance, glossy_rays= or bucket_strata=MxN with comma-separated values";
 
 impl Plan {
     /// Parses and checks `flags` against `job`: every swept value is checked like a
@@ -158,7 +161,7 @@ impl Setting {
                 let v = v.trim();
                 Setting::parse(key, v).ok_or_else(|| match key {
                     "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" | "glossy"
-                    | "glossy_rays" => {
+                    | "glossy_rays" | "bucket_strata" => {
                         format!("{v:?} is not a value of {key} ({SETTINGS})")
                     }
                     _ => format!("unknown setting {key:?}: {SETTINGS}"),
@@ -189,6 +192,10 @@ impl Setting {
                 _ => return None,
             }),
             "glossy_rays" => Setting::GlossyRays(v.parse().ok()?),
+            "bucket_strata" => {
+                let (m, n) = v.split_once('x')?;
+                Setting::BucketStrata([m.parse().ok()?, n.parse().ok()?])
+            }
             _ => return None,
         })
     }
@@ -204,6 +211,10 @@ impl Setting {
             Setting::AnchorK(v) => m.anchors.get_or_insert_default().k_scale = v,
             Setting::Glossy(v) => m.glossy_mode = Some(v),
             Setting::GlossyRays(v) => m.glossy_rays = Some(v),
+            Setting::BucketStrata(v) => {
+                m.glossy_bucket_strata = Some(v);
+                m.glossy_mode = Some(GlossyMode::Bucketing);
+            }
         }
     }
 
@@ -218,6 +229,7 @@ impl Setting {
             Setting::Glossy(GlossyMode::Bucketing) => "glossy=bucketing".into(),
             Setting::Glossy(GlossyMode::Importance) => "glossy=importance".into(),
             Setting::GlossyRays(v) => format!("glossy_rays={v}"),
+            Setting::BucketStrata([m, n]) => format!("bucket_strata={m}x{n}"),
         }
     }
 }
@@ -306,6 +318,17 @@ mod tests {
         assert_eq!(list("k=10, 20"), [Setting::K(10), Setting::K(20)]);
         assert_eq!(list("error=0.5"), [Setting::Error(0.5)]);
         assert_eq!(list("anchor_k=2"), [Setting::AnchorK(2.0)]);
+        assert_eq!(
+            list("bucket_strata=6x24,12x48"),
+            [
+                Setting::BucketStrata([6, 24]),
+                Setting::BucketStrata([12, 48])
+            ]
+        );
+        let mut job = job();
+        Setting::BucketStrata([6, 24]).apply(&mut job);
+        assert_eq!(job.method.glossy_bucket_strata, Some([6, 24]));
+        assert_eq!(job.method.glossy_mode, Some(GlossyMode::Bucketing));
         assert_eq!(
             list("visibility=cpu,gpu,auto"),
             [

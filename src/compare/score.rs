@@ -25,6 +25,11 @@ pub struct Score {
     /// The same two scores on the `indirect` AOV alone, where the methods differ.
     pub indirect_rms_error_pct: f64,
     pub indirect_flicker_pct: Option<f64>,
+    /// The two RMS errors less the reference's own noise ([`rms_error_pct_denoised`]): the
+    /// error against the image the reference converges to. `None` where the reference kept
+    /// no per-pixel variance.
+    pub rms_error_pct_denoised: Option<f64>,
+    pub indirect_rms_error_pct_denoised: Option<f64>,
     pub rays_shot_per_frame: f64,
     /// Final-gather rays traced per second of final-gathering time, per worker thread.
     pub gather_rays_per_s_per_core: Option<f64>,
@@ -91,6 +96,38 @@ pub fn rms_error_pct(a: &FrameImage, r: &FrameImage, aov: Aov) -> f64 {
     if n > 0.0 { 100.0 * (d / n).sqrt() } else { 0.0 }
 }
 
+/// [`rms_error_pct`] against the image the reference `r` converges to, estimated from `r` and
+/// its per-pixel variance of the mean σ²: E[(a − r)²] = (a − E r)² + σ² for a reference
+/// independent of `a`, so `100·sqrt((Σ(a − r)² − Σσ²) / (Σr² − Σσ²))` (each sum clamped at
+/// zero). The variance is that of independent samples, an upper bound in practice for the
+/// reference's scrambled-QMC ones, so this reads at most the true error against the converged
+/// image, and close to it when the variant's error is not far below the reference's noise.
+/// `None` when the reference kept no variance.
+pub fn rms_error_pct_denoised(a: &FrameImage, r: &FrameImage, aov: Aov) -> Option<f64> {
+    let var = match aov {
+        Aov::Beauty => &r.variance.beauty,
+        Aov::Indirect => &r.variance.indirect,
+    };
+    if var.len() != r.beauty.len() {
+        return None;
+    }
+    let (mut d, mut n, mut v) = (0.0f64, 0.0f64, 0.0f64);
+    for (i, s2) in var.iter().enumerate() {
+        let (p, q) = (rgb(a, aov, i), rgb(r, aov, i));
+        for k in 0..3 {
+            d += (p[k] as f64 - q[k] as f64).powi(2);
+            n += (q[k] as f64).powi(2);
+            v += s2[k] as f64;
+        }
+    }
+    let n = n - v;
+    Some(if n > 0.0 {
+        100.0 * ((d - v).max(0.0) / n).sqrt()
+    } else {
+        0.0
+    })
+}
+
 /// Flicker of `run` over pixels where the reference keeps its depth and coverage between
 /// consecutive frames: (flicker %, pixels compared).
 pub fn flicker_pct(run: &[FrameImage], reference: &[FrameImage], aov: Aov) -> (Option<f64>, u64) {
@@ -148,6 +185,15 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
             .collect()
     };
     let (per_frame, indirect) = (error(Aov::Beauty), error(Aov::Indirect));
+    let denoised = |aov| -> Option<f64> {
+        let e: Option<Vec<f64>> = r
+            .images
+            .iter()
+            .zip(&reference.images)
+            .map(|(a, b)| rms_error_pct_denoised(a, b, aov))
+            .collect();
+        e.map(|e| mean(&e))
+    };
     let (flicker, pixels) = flicker_pct(&r.images, &reference.images, Aov::Beauty);
     let (ind_flicker, _) = flicker_pct(&r.images, &reference.images, Aov::Indirect);
     let n = r.stats.len().max(1) as f64;
@@ -170,6 +216,8 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
         flicker_pixels: pixels,
         indirect_rms_error_pct: mean(&indirect),
         indirect_flicker_pct: ind_flicker,
+        rms_error_pct_denoised: denoised(Aov::Beauty),
+        indirect_rms_error_pct_denoised: denoised(Aov::Indirect),
         rays_shot_per_frame: per_frame_mean(&|s| s.counts.rays_shot as f64),
         gather_rays_per_s_per_core: {
             let (rays, secs) = r.stats.iter().fold((0.0, 0.0), |(a, b), s| {
@@ -238,6 +286,8 @@ pub(super) fn sample(n: usize) -> Report {
                 flicker_pixels: 700,
                 indirect_rms_error_pct: 5.1 + 0.4 * (i % 3) as f64 - 0.05 * step,
                 indirect_flicker_pct: None,
+                rms_error_pct_denoised: Some(1.5),
+                indirect_rms_error_pct_denoised: None,
                 rays_shot_per_frame: 1e6,
                 gather_rays_per_s_per_core: Some(2e6),
                 table1_s: Table1 {
@@ -265,5 +315,66 @@ pub(super) fn sample(n: usize) -> Report {
         reference_flicker_pct: Some(0.1),
         reference_indirect_flicker_pct: None,
         results,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Normal deviates from a fixed splitmix64 sequence (Box–Muller).
+    fn normals(seed: u64, n: usize) -> Vec<f64> {
+        let mut s = seed;
+        let mut uniform = move || {
+            s = s.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = s;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n)
+            .map(|_| {
+                let (u, v) = (uniform().max(1e-300), uniform());
+                (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+            })
+            .collect()
+    }
+
+    fn image(values: &[f64], variance: Option<f64>) -> FrameImage {
+        FrameImage {
+            beauty: values.iter().map(|&v| [v as f32; 4]).collect(),
+            variance: crate::integrator::film::PixelVariance {
+                beauty: variance.map_or(Vec::new(), |s2| vec![[s2 as f32; 3]; values.len()]),
+                indirect: Vec::new(),
+            },
+            ..Default::default()
+        }
+    }
+
+    /// A variant 3 % off the truth with a little noise, against a reference whose noise is
+    /// ten times its error: the plain RMS error reads the reference's noise, the denoised
+    /// one the variant's own error against the converged image.
+    #[test]
+    fn the_denoised_error_reads_the_error_against_the_converged_image() {
+        let n = 40_000;
+        let truth: Vec<f64> = (0..n)
+            .map(|i| 1.0 + 0.5 * (i as f64 * 0.01).sin())
+            .collect();
+        let (na, nr) = (normals(1, n), normals(2, n));
+        let a: Vec<f64> = (0..n).map(|i| truth[i] * 1.03 + 0.01 * na[i]).collect();
+        let sigma = 0.3;
+        let r: Vec<f64> = (0..n).map(|i| truth[i] + sigma * nr[i]).collect();
+        let t = image(&truth, None);
+        let (ia, ir) = (image(&a, None), image(&r, Some(sigma * sigma)));
+        let true_error = rms_error_pct(&ia, &t, Aov::Beauty);
+        let plain = rms_error_pct(&ia, &ir, Aov::Beauty);
+        let denoised = rms_error_pct_denoised(&ia, &ir, Aov::Beauty).unwrap();
+        assert!(plain > 5.0 * true_error, "plain {plain} true {true_error}");
+        assert!(
+            (denoised - true_error).abs() < 0.1 * true_error,
+            "denoised {denoised} against the converged image {true_error}"
+        );
+        // Without a variance there is nothing to subtract.
+        assert_eq!(rms_error_pct_denoised(&ia, &t, Aov::Beauty), None);
     }
 }

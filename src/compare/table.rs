@@ -17,7 +17,7 @@ pub fn table(r: &Report) -> String {
         r.resolution[1]
     );
     s += &format!(
-        "{:<40} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>8} {:>9}\n",
+        "{:<40} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>8} {:>9} {:>9} {:>9}\n",
         "method/preset",
         "s/frame",
         "RMS err%",
@@ -26,11 +26,13 @@ pub fn table(r: &Report) -> String {
         "ind.flk%",
         "gather rays",
         "caches",
-        "photons"
+        "photons",
+        "RMS*%",
+        "ind.err*%"
     );
     for x in &r.results {
         s += &format!(
-            "{:<40} {:>9.3} {:>9.2} {:>9} {:>9.2} {:>9} {:>12.0} {:>8.0} {:>9.0}\n",
+            "{:<40} {:>9.3} {:>9.2} {:>9} {:>9.2} {:>9} {:>12.0} {:>8.0} {:>9.0} {:>9} {:>9}\n",
             x.label,
             x.seconds_per_frame_median,
             x.rms_error_pct,
@@ -39,9 +41,12 @@ pub fn table(r: &Report) -> String {
             fmt_opt(x.indirect_flicker_pct),
             x.rays_shot_per_frame,
             x.caches_per_frame,
-            x.photons_per_frame
+            x.photons_per_frame,
+            fmt_pct(x.rms_error_pct_denoised),
+            fmt_pct(x.indirect_rms_error_pct_denoised)
         );
     }
+    s += "RMS*% and ind.err*%: the same errors less the reference's own noise (its per-pixel variance)\n";
     s += &format!(
         "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8}\n",
         rayon::current_num_threads(),
@@ -79,6 +84,10 @@ pub fn table(r: &Report) -> String {
     s
 }
 
+fn fmt_pct(v: Option<f64>) -> String {
+    v.map_or("n/a".into(), |v| format!("{v:.2}"))
+}
+
 fn fmt_opt(v: Option<f64>) -> String {
     v.map_or("n/a".into(), |v| format!("{v:.3}"))
 }
@@ -97,12 +106,12 @@ mod tests {
             lines[..3],
             [
                 "reference path-trace/final (12.00 s/frame, own flicker 0.100 beauty, n/a indirect), frames 0..2, 128x96",
-                "method/preset                              s/frame  RMS err%  flicker%  ind.err%  ind.flk%  gather rays   caches   photons",
-                "anchors/production photons=10000             0.200      1.90     0.500      5.10       n/a      1000000      800     50000",
+                "method/preset                              s/frame  RMS err%  flicker%  ind.err%  ind.flk%  gather rays   caches   photons     RMS*% ind.err*%",
+                "anchors/production photons=10000             0.200      1.90     0.500      5.10       n/a      1000000      800     50000      1.50       n/a",
             ]
         );
         assert_eq!(
-            lines[6..8],
+            lines[7..9],
             [
                 "method/preset                             photons  irr.est   gather   interp   direct   visib.    total gather rays/s/core  reshot%  vis/10k",
                 "anchors/production photons=10000            0.010    0.020    0.100    0.010    0.020    0.000    0.200         2.00 M      n/a      n/a",
