@@ -85,19 +85,42 @@ impl Sampler {
     }
 
     /// Sample `index`, dimension `dim`, in `[0, 1)`. Dimensions past the sequence's 256 are
-    /// re-seeded so they stay decorrelated.
+    /// re-seeded so they stay decorrelated, and so are indices past its 2^16 samples: each
+    /// block of 2^16 samples (photons beyond the first 65 536, for one) is its own
+    /// independently scrambled sequence. Without that, the sequence repeats itself: sample
+    /// `i + 2^16` would share its first dimensions with an earlier one.
     pub fn get(&self, index: u32, dim: u32) -> f32 {
+        let (index, seed) = self.block(index, dim);
+        sobol_burley::sample(index, dim % sobol_burley::NUM_DIMENSIONS, seed)
+    }
+
+    /// The index within its block of 2^16 samples, and the seed of the block and of the
+    /// dimension's set of 256.
+    fn block(&self, index: u32, dim: u32) -> (u32, u32) {
         let set = dim / sobol_burley::NUM_DIMENSIONS;
         let seed = if set == 0 {
             self.seed
         } else {
             hash(&[self.seed, set])
         };
-        sobol_burley::sample(index, dim % sobol_burley::NUM_DIMENSIONS, seed)
+        match index >> 16 {
+            0 => (index, seed),
+            block => (index & 0xffff, hash(&[seed, block, 0xb10c_5eed])),
+        }
     }
 
+    /// Dimensions `dim` and `dim + 1` of sample `index`: the same values as two
+    /// [`Sampler::get`] calls, computed four dimensions at a time (SIMD) where both lie in
+    /// one of the sequence's sets of four.
     pub fn get2(&self, index: u32, dim: u32) -> [f32; 2] {
-        [self.get(index, dim), self.get(index, dim + 1)]
+        if dim % 4 == 3 {
+            return [self.get(index, dim), self.get(index, dim + 1)];
+        }
+        let (index, seed) = self.block(index, dim);
+        let within = dim % sobol_burley::NUM_DIMENSIONS;
+        let four = sobol_burley::sample_4d(index, within / 4, seed);
+        let k = (within % 4) as usize;
+        [four[k], four[k + 1]]
     }
 }
 
@@ -111,6 +134,40 @@ mod tests {
         let b = Sampler::new(1, 2, Stream::Camera, 3);
         assert_eq!(a.get(5, 7), b.get(5, 7));
         assert_ne!(a.get(5, 7), Sampler::new(1, 3, Stream::Camera, 3).get(5, 7));
+    }
+
+    #[test]
+    fn pairs_are_the_single_dimensions() {
+        for (seed, frame) in [(0, 0), (7, -3), (123_456, 99)] {
+            let s = Sampler::new(seed, frame, Stream::Strata, 5);
+            for index in [0, 1, 2, 17, 255, 4095, 65_536, 200_001] {
+                for dim in 0..600 {
+                    assert_eq!(
+                        s.get2(index, dim).map(f32::to_bits),
+                        [s.get(index, dim), s.get(index, dim + 1)].map(f32::to_bits),
+                        "seed {seed} index {index} dim {dim}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Photons are numbered past the sequence's 2^16 samples: every one must get its own
+    /// sample, not repeat the one 2^16 earlier.
+    #[test]
+    fn samples_past_two_to_the_sixteen_do_not_repeat() {
+        let s = Sampler::photons(1);
+        let mut seen = std::collections::HashSet::new();
+        let repeats = (0..300_000u32)
+            .filter(|&i| !seen.insert([s.get(i, 0), s.get(i, 1), s.get(i, 2)].map(f32::to_bits)))
+            .count();
+        assert_eq!(repeats, 0);
+        // The next block is stratified in its own right.
+        let mut hit = [false; 16];
+        for i in 0..16 {
+            hit[(s.get(3 * 65_536 + i, 3) * 16.0) as usize] = true;
+        }
+        assert!(hit.iter().all(|&h| h));
     }
 
     #[test]
