@@ -198,4 +198,94 @@ mod tests {
         std::fs::write(&p, b"{\"not\": \"a state\"}").unwrap();
         assert!(msg(read(&p, [7; 32], 64)).contains("not an anchorage checkpoint"));
     }
+
+    /// A state whose indices point outside itself (a file written by a faulty build, or
+    /// edited) is refused on reading, naming what is wrong, before anything renders from it.
+    #[test]
+    fn an_inconsistent_state_is_refused() {
+        use crate::anchor::packed::Quantizer;
+        use crate::anchor::{Anchor, AnchorId, AnchorSet};
+        use crate::cache::Stratum;
+        use crate::cache::record::Record;
+        use crate::geom::Motion;
+        use glam::Vec3;
+
+        let q = Quantizer::new(Vec3::ZERO, Vec3::ONE);
+        let mut set = AnchorSet::new(q);
+        for x in [0.2, 0.7] {
+            set.add(Anchor::new(
+                &q,
+                Vec3::splat(x),
+                Vec3::Y,
+                Vec3::splat(0.5),
+                Vec3::ONE,
+            ));
+        }
+        let record = Record {
+            position: Vec3::ZERO,
+            normal: Vec3::Y,
+            irradiance: Vec3::ONE,
+            radius: 1.0,
+            grad_r: [Vec3::ZERO; 3],
+            grad_t: [Vec3::ZERO; 3],
+            motion: Motion::Static,
+            id: 0,
+            last_used: 0,
+            footprint: 0.01,
+            error: Vec3::ZERO,
+            ng: Vec3::Y,
+            strata: vec![Stratum::new(Some(AnchorId(1)), 0, 1.0, 0.01); 4],
+            reshot: 0.0,
+            dominant_anchor: Some(AnchorId(1)),
+            enclosed: false,
+        };
+        let mut good = FrameState::default();
+        good.cache.records.push(record);
+        good.anchors = Some(set);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("s.state");
+        write(&p, [7; 32], 4, &good).unwrap();
+        assert!(read(&p, [7; 32], 4).is_ok());
+
+        // The set's private fields, through its serialised form.
+        fn edit_anchors(s: &mut FrameState, key: &str, value: serde_json::Value) {
+            let mut v = serde_json::to_value(s.anchors.as_ref().unwrap()).unwrap();
+            v[key] = value;
+            s.anchors = Some(serde_json::from_value(v).unwrap());
+        }
+        type Damage = fn(&mut FrameState);
+        let cases: [(Damage, &str); 6] = [
+            (
+                |s| s.cache.records[0].strata[2] = Stratum::new(Some(AnchorId(2)), 0, 1.0, 0.01),
+                "links an anchor that does not exist",
+            ),
+            (|s| s.cache.records[0].radius = f32::NAN, "non-finite"),
+            (
+                |s| s.cache.records[0].strata.pop().map(drop).unwrap_or(()),
+                "has 3 strata",
+            ),
+            (
+                |s| s.anchors.as_mut().unwrap().photon_links = vec![None, Some(AnchorId(5))],
+                "a photon links to an anchor",
+            ),
+            (
+                |s| edit_anchors(s, "free", serde_json::json!([9])),
+                "free anchor slot",
+            ),
+            (
+                |s| edit_anchors(s, "reach", serde_json::json!([0])),
+                "reaches",
+            ),
+        ];
+        for (damage, reason) in cases {
+            let mut bad = good.clone();
+            damage(&mut bad);
+            write(&p, [7; 32], 4, &bad).unwrap();
+            let err = read(&p, [7; 32], 4).unwrap_err().to_string();
+            assert!(
+                err.contains("inconsistent") && err.contains(reason),
+                "{reason}: {err}"
+            );
+        }
+    }
 }
