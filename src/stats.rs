@@ -5,7 +5,12 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-/// Per-stage wall-clock seconds (`schemas/stats.schema.json`).
+/// Per-stage seconds of the frame's wall time (`schemas/stats.schema.json`). Stages that
+/// run one after another are wall-clock spans; the parallel shading pass of the cached
+/// methods is split among `direct_lighting`, `cache_interpolation`, `final_gathering` and
+/// `irradiance_estimation` in proportion to the thread seconds its workers spent at each
+/// (per row, summed over threads), so the rows are seconds per frame that add up to about
+/// `total` (the rest: scene evaluation, BVHs, output, bookkeeping between phases).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Timings {
     /// Evaluating animation, skinning and morphing of dynamic prims.
@@ -14,8 +19,11 @@ pub struct Timings {
     pub static_bvh: f64,
     pub dynamic_bvh: f64,
     /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
-    /// gather hits, or precomputation), final gathering (tracing gather rays) and cache
-    /// interpolation (shading from the cache). Zero for methods without that stage.
+    /// gather hits, or precomputation; for `anchors` also L_i re-estimation and attachment),
+    /// final gathering (tracing gather rays) and cache interpolation (shading from the cache,
+    /// glossy bucketing and reflection rays included). Pixel samples no record covers gather
+    /// on the spot: their rays count as final gathering, their photon look-ups as irradiance
+    /// estimation, not as interpolation. Zero for methods without that stage.
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
     pub final_gathering: f64,
@@ -49,7 +57,7 @@ pub struct Counts {
     pub photons: u64,
     /// Irradiance cache records in use this frame.
     pub caches: u64,
-    /// Final-gather rays traced this frame.
+    /// Final-gather rays traced this frame, those of `uncached_samples` included.
     pub rays_shot: u64,
     /// Pixel samples no cache record covered, gathered on the spot.
     pub uncached_samples: u64,

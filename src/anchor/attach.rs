@@ -1,11 +1,34 @@
 //! AttachToAnchor (Pseudocode 1, §3.1, §3.3): the anchor a static gather hit links to —
 //! the nearest photon's anchor, else one of the nearest anchors within D_max that passes
 //! the reuse tests, else a new anchor at the hit.
+//!
+//! A gather's hits attach together ([`Attacher::attach_all`]), in three steps that give the
+//! same anchors for any thread count:
+//!
+//! 1. *Search*, in parallel, read-only: every hit looks for its nearest photon and for an
+//!    acceptable anchor among those that existed before this batch (the photon's anchor,
+//!    then the three nearest within D_max). On a steady frame almost every hit finds one
+//!    here, and this is where the time goes (k-d searches and the shadow rays of §3.1).
+//! 2. *Create*, sequentially in hit order (record, then stratum), only for the hits that
+//!    found none: the search is repeated against what this batch has added so far — the
+//!    anchor its photon links to since, then the three nearest within D_max among the
+//!    anchors step 1 tried and those this batch created — and a new anchor is made where
+//!    none is acceptable, so that two nearby hits of one batch share an anchor as they
+//!    would one by one.
+//! 3. *Resolve*: each hit's nearest photon, in hit order, links to the hit's anchor unless
+//!    it links one already (§3.3.2: the first claim keeps it); the new anchors' L_i are
+//!    estimated in parallel.
+//!
+//! One by one, a hit could also reuse an anchor that an earlier hit of its batch created
+//! or linked, where step 1 finds an older one first: the choice may differ, not its
+//! quality (every anchor chosen passes the same tests).
 
 use glam::Vec3;
 
+use rayon::prelude::*;
+
 use super::importons::Importons;
-use super::{Anchor, AnchorId, AnchorParams, AnchorSet};
+use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree};
 use crate::accel::{gamma, offset_ray_origin};
 use crate::interaction::{Materials, SurfacePoint};
 use crate::photon::PhotonMap;
@@ -53,60 +76,166 @@ impl Attacher<'_> {
         )
     }
 
-    /// AttachToAnchor (Pseudocode 1): the anchor a static gather hit links to.
-    pub fn attach(&self, set: &mut AnchorSet, sp: &SurfacePoint) -> AnchorId {
+    /// Step 1 (module doc) for one hit: read-only, against the anchors and photon links
+    /// as they are.
+    fn search(&self, set: &AnchorSet, sp: &SurfacePoint) -> Search {
         let albedo = sp.albedo(self.m);
         let x = sp.position;
         // §3.3.2: the nearest photon's anchor, if it has one.
         let photon = self.pm.nearest(x).filter(|&i| {
             (self.pm.photons[i].position - x).length() <= self.params.photon_radius * self.scale
         });
-        if let Some(ph) = photon
-            && let Some(a) = set.photon_links[ph]
-            && set.anchor(a).is_live()
-            && self.acceptable(set, a, sp, albedo)
-        {
-            return a;
-        }
-        // §3.3.1: the nearest anchors within D_max; three rejections create a new one.
+        let linked = photon.and_then(|ph| set.photon_links[ph]);
+        // §3.3.1: D_max, constant or scaled by the importons.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));
         let d_max = self
             .params
             .d_max_absolute
             .unwrap_or(self.params.d_max * self.scale)
             * factor;
+        let mut search = Search {
+            albedo,
+            photon,
+            linked,
+            d_max,
+            found: None,
+            near: Vec::new(),
+            visited: 0,
+        };
+        if let Some(a) = linked
+            && set.anchor(a).is_live()
+            && self.acceptable(set, a, sp, albedo)
+        {
+            search.found = Some(a);
+            return search;
+        }
+        // §3.3.1: the nearest anchors within D_max; three rejections create a new one.
         let anchors = &set.anchors;
-        let candidates = set
+        let (candidates, visited) = set
             .tree
-            .nearest(x, d_max, 3, |i| anchors[i as usize].is_live());
-        let found = candidates
+            .search(x, d_max, 3, |i| anchors[i as usize].is_live());
+        search.visited = visited;
+        search.found = candidates
             .iter()
             .map(|&(_, id)| AnchorId(id))
             .find(|&id| self.acceptable(set, id, sp, albedo));
-        let id = match found {
-            Some(id) => id,
-            None => {
-                // Estimated where the anchor is stored (quantised position and normal),
-                // exactly as later frames re-estimate it: the normal test against photons
-                // can tip on a fraction of a degree.
-                let q = set.quantizer;
-                let id = set.add(Anchor::new(&q, x, sp.ng, albedo, Vec3::ZERO));
-                let a = *set.anchor(id);
-                let (e, r2) = self.pm.irradiance_and_radius(
-                    a.position(&q),
-                    a.normal(),
-                    self.params.anchor_k(self.k),
-                );
-                set.anchor_mut(id).set_irradiance(e);
-                set.set_reach(id, r2);
-                id
-            }
-        };
-        if let Some(ph) = photon
-            && set.photon_links[ph].is_none()
-        {
-            set.photon_links[ph] = Some(id);
-        }
-        id
+        search.near = candidates;
+        search
     }
+
+    /// Step 2 (module doc) for a hit whose search found no anchor: the anchor its photon
+    /// links to since the search, else an acceptable one among the three nearest within
+    /// D_max of the anchors before this batch (all rejected in step 1) and those this batch
+    /// created (`fresh`, a tree of their ids), as one by one; else a new anchor (its L_i
+    /// estimated later, in step 3), which goes into `fresh`.
+    fn create(
+        &self,
+        set: &mut AnchorSet,
+        fresh: &mut KdTree,
+        sp: &SurfacePoint,
+        s: &Search,
+    ) -> (AnchorId, bool) {
+        let now = s.photon.and_then(|ph| set.photon_links[ph]);
+        if let Some(a) = now
+            && now != s.linked
+            && set.anchor(a).is_live()
+            && self.acceptable(set, a, sp, s.albedo)
+        {
+            return (a, false);
+        }
+        let (created, _) = fresh.search(sp.position, s.d_max, 3, |_| true);
+        let mut nearest: Vec<(f32, u32, bool)> = s
+            .near
+            .iter()
+            .map(|&(d2, id)| (d2, id, false))
+            .chain(created.iter().map(|&(d2, id)| (d2, id, true)))
+            .collect();
+        nearest.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        nearest.truncate(3);
+        if let Some(id) = nearest
+            .iter()
+            .filter(|c| c.2)
+            .map(|&(_, id, _)| AnchorId(id))
+            .find(|&id| self.acceptable(set, id, sp, s.albedo))
+        {
+            return (id, false);
+        }
+        let q = set.quantizer;
+        let id = set.add(Anchor::new(&q, sp.position, sp.ng, s.albedo, Vec3::ZERO));
+        fresh.insert(set.anchor(id).position(&q), id.0);
+        (id, true)
+    }
+
+    /// AttachToAnchor (Pseudocode 1) for a batch of static gather hits, in order (record,
+    /// then stratum): the anchor each links to, the same for any thread count (module doc).
+    pub fn attach_all(&self, set: &mut AnchorSet, hits: &[&SurfacePoint]) -> Vec<AnchorId> {
+        // Step 1: search in parallel.
+        let searches: Vec<Search> = {
+            let set = &*set;
+            hits.par_iter().map(|sp| self.search(set, sp)).collect()
+        };
+        let made = searches.iter().filter(|s| s.visited > 0).count() as u64;
+        let visited = searches.iter().map(|s| s.visited).sum();
+        set.tree.count(made, visited);
+        // Step 2: create, in order, where the search found nothing.
+        let mut fresh = KdTree::default();
+        let mut created = Vec::new();
+        let mut ids = Vec::with_capacity(hits.len());
+        for (sp, s) in hits.iter().zip(&searches) {
+            let id = match s.found {
+                Some(id) => id,
+                None => {
+                    let (id, new) = self.create(set, &mut fresh, sp, s);
+                    if new {
+                        created.push(id);
+                    }
+                    id
+                }
+            };
+            // Step 3: the first claim on a photon keeps it (§3.3.2).
+            if let Some(ph) = s.photon
+                && set.photon_links[ph].is_none()
+            {
+                set.photon_links[ph] = Some(id);
+            }
+            ids.push(id);
+        }
+        // Step 3: the new anchors' L_i, estimated where the anchor is stored (quantised
+        // position and normal), exactly as later frames re-estimate it: the normal test
+        // against photons can tip on a fraction of a degree.
+        let q = set.quantizer;
+        let k = self.params.anchor_k(self.k);
+        let estimates: Vec<(Vec3, f32)> = {
+            let set = &*set;
+            created
+                .par_iter()
+                .map(|&id| {
+                    let a = set.anchor(id);
+                    self.pm.irradiance_and_radius(a.position(&q), a.normal(), k)
+                })
+                .collect()
+        };
+        for (&id, (e, r2)) in created.iter().zip(estimates) {
+            set.anchor_mut(id).set_irradiance(e);
+            set.set_reach(id, r2);
+        }
+        ids
+    }
+}
+
+/// What step 1 (module doc) found for one hit.
+struct Search {
+    /// The hit's albedo.
+    albedo: Vec3,
+    /// The nearest photon within the photon radius, and the anchor it linked to then.
+    photon: Option<usize>,
+    linked: Option<AnchorId>,
+    /// D_max at the hit.
+    d_max: f32,
+    /// The anchor found, if any, and the nearest anchors within D_max the search tried
+    /// (squared distance, id).
+    found: Option<AnchorId>,
+    near: Vec<(f32, u32)>,
+    /// Nodes of the anchor kd-tree the search visited (0: it made none).
+    visited: u64,
 }

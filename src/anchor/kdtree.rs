@@ -145,6 +145,7 @@ impl KdTree {
 
     /// Up to `k` nearest items within `radius` of `p` passing `accept`, nearest first, as
     /// (squared distance, item). Ties break by item, so results never depend on layout.
+    /// Counts the search and the nodes it visited (§3's rebalancing rule).
     pub fn nearest(
         &mut self,
         p: Vec3,
@@ -152,18 +153,43 @@ impl KdTree {
         k: usize,
         accept: impl Fn(u32) -> bool,
     ) -> Vec<(f32, u32)> {
-        let mut best: Vec<(f32, u32)> = Vec::with_capacity(k + 1);
-        if self.nodes.is_empty() || k == 0 {
-            return best;
+        let (best, visited) = self.search(p, radius, k, accept);
+        if visited > 0 {
+            self.count(1, visited);
         }
-        self.searches += 1;
+        best
+    }
+
+    /// Adds `searches` searches that visited `visited` nodes in all to the counts
+    /// [`KdTree::mean_visited`] reads (searches made by [`KdTree::search`], e.g. in
+    /// parallel).
+    pub fn count(&mut self, searches: u64, visited: u64) {
+        self.searches += searches;
+        self.visited += visited;
+    }
+
+    /// [`KdTree::nearest`] without counting: the items and how many nodes the search
+    /// visited (0 when the tree is empty or `k` is 0: no search was made). Read-only, so
+    /// searches can run in parallel; the caller adds them up with [`KdTree::count`].
+    pub fn search(
+        &self,
+        p: Vec3,
+        radius: f32,
+        k: usize,
+        accept: impl Fn(u32) -> bool,
+    ) -> (Vec<(f32, u32)>, u64) {
+        let mut best: Vec<(f32, u32)> = Vec::with_capacity(k + 1);
+        let mut visited = 0;
+        if self.nodes.is_empty() || k == 0 {
+            return (best, visited);
+        }
         let mut r2 = radius * radius;
         let mut stack = vec![self.root];
         while let Some(i) = stack.pop() {
             if i == NIL {
                 continue;
             }
-            self.visited += 1;
+            visited += 1;
             let n = self.nodes[i as usize];
             let d2 = (n.point - p).length_squared();
             if d2 <= r2 && accept(n.item) {
@@ -187,7 +213,7 @@ impl KdTree {
             }
             stack.push(near);
         }
-        best
+        (best, visited)
     }
 
     /// Average nodes visited per search since the last reset.

@@ -43,7 +43,7 @@ pub struct Score {
     pub visibility_s_per_10k_caches: Option<f64>,
 }
 
-/// Median seconds per stage.
+/// Median seconds per stage (each a median over frames, of the stats' `timings_s`).
 #[derive(Debug, Clone, Serialize)]
 pub struct Table1 {
     pub photon_tracing: f64,
@@ -52,6 +52,9 @@ pub struct Table1 {
     pub cache_interpolation: f64,
     pub direct_lighting: f64,
     pub visibility: f64,
+    /// Everything else of a frame: `total` less the rows above (scene evaluation, BVHs,
+    /// depth maps, output, bookkeeping between phases).
+    pub other: f64,
     pub total: f64,
 }
 
@@ -235,6 +238,16 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
             cache_interpolation: med(&|s| s.timings_s.cache_interpolation),
             direct_lighting: med(&|s| s.timings_s.direct_lighting),
             visibility: med(&|s| s.timings_s.visibility),
+            other: med(&|s| {
+                let t = &s.timings_s;
+                t.total
+                    - (t.photon_tracing
+                        + t.irradiance_estimation
+                        + t.final_gathering
+                        + t.cache_interpolation
+                        + t.direct_lighting
+                        + t.visibility)
+            }),
             total: med(&|s| s.timings_s.total),
         },
         reshot_pct: steady(&|s| {
@@ -297,6 +310,7 @@ pub(super) fn sample(n: usize) -> Report {
                     cache_interpolation: 0.01,
                     direct_lighting: 0.02,
                     visibility: 0.0,
+                    other: 0.04,
                     total: 0.2,
                 },
                 caches_per_frame: 800.0,

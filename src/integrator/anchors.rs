@@ -14,8 +14,10 @@
 //! can be in its way. New records (camera motion, dynamic prims) gather all their
 //! strata and attach them the same way.
 //!
-//! Attachment is sequential in record and stratum order, so anchors are created in the
-//! same order for any thread count; ray tracing and estimates run in parallel.
+//! Attachment searches the anchors for all of a gather's hits in parallel and creates the
+//! missing anchors sequentially in record and stratum order
+//! ([`crate::anchor::attach`]), so anchors are created in the same order for any thread
+//! count; ray tracing and estimates run in parallel.
 
 use std::time::Instant;
 
@@ -50,11 +52,12 @@ pub struct AnchorStats {
     pub rebalanced: bool,
 }
 
-/// Resolves gather hits for the anchor method: dynamic hits by the photon map (parallel),
-/// static hits by attachment (sequential, in order). `previous` are the strata that re-shot
-/// hits replace: a re-shot ray that lands on static geometry at the distance it had before
-/// (its stratum was flagged, but nothing dynamic was in the way) keeps its anchor, as an
-/// unflagged stratum would; re-attaching it could pick another anchor and add flicker.
+/// Resolves gather hits for the anchor method: dynamic hits by the photon map, static hits
+/// by attachment ([`Attacher::attach_all`]: searched in parallel, new anchors made in record
+/// and stratum order). `previous` are the strata that re-shot hits replace: a re-shot ray
+/// that lands on static geometry at the distance it had before (its stratum was flagged, but
+/// nothing dynamic was in the way) keeps its anchor, as an unflagged stratum would;
+/// re-attaching it could pick another anchor and add flicker.
 fn resolve(
     att: &Attacher,
     set: &mut AnchorSet,
@@ -77,37 +80,56 @@ fn resolve(
                 .collect()
         })
         .collect();
+    // Per hit, the anchor a re-shot stratum keeps (its ray landed where it did before).
+    let kept: Vec<Vec<Option<AnchorId>>> = hits
+        .iter()
+        .enumerate()
+        .map(|(ri, h)| {
+            let scale = footprints[ri];
+            (0..h.len())
+                .map(|si| {
+                    previous
+                        .map(|p| p[ri][si])
+                        .filter(|old| {
+                            old.flags() & HIT_DYNAMIC == 0
+                                && Stratum::new(None, 0, h[si].distance, scale).distance(scale)
+                                    == old.distance(scale)
+                        })
+                        .and_then(|old| old.link())
+                })
+                .collect()
+        })
+        .collect();
+    // The static hits that attach, in record and stratum order.
+    let attaching: Vec<&crate::interaction::SurfacePoint> = hits
+        .iter()
+        .zip(&kept)
+        .flat_map(|(h, k)| h.iter().zip(k))
+        .filter_map(|(g, k)| match (&g.sp, k) {
+            (Some(sp), None) if sp.hit.motion == Motion::Static => Some(sp),
+            _ => None,
+        })
+        .collect();
+    let mut attached = att.attach_all(set, &attaching).into_iter();
     let mut out = Vec::with_capacity(hits.len());
-    for (ri, (h, dyn_rad)) in hits.into_iter().zip(dynamic).enumerate() {
+    for (ri, (h, dyn_rad)) in hits.iter().zip(dynamic).enumerate() {
         let scale = footprints[ri];
         let mut strata = Vec::with_capacity(h.len());
         let mut rad = Vec::with_capacity(h.len());
         for (si, g) in h.iter().enumerate() {
-            // The anchor of a re-shot stratum whose ray lands where it did before.
-            let kept = previous
-                .map(|p| p[ri][si])
-                .filter(|old| {
-                    old.flags() & HIT_DYNAMIC == 0
-                        && Stratum::new(None, 0, g.distance, scale).distance(scale)
-                            == old.distance(scale)
-                })
-                .and_then(|old| old.link());
             let flags = g.flags();
-            let (stratum, radiance) = match (&g.sp, kept) {
-                (Some(sp), Some(id)) if sp.hit.motion == Motion::Static => (
+            let link = match (&g.sp, kept[ri][si]) {
+                (Some(sp), Some(id)) if sp.hit.motion == Motion::Static => Some(id),
+                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => None,
+                (Some(_), _) => attached.next(),
+                (None, _) => None,
+            };
+            let (stratum, radiance) = match (&g.sp, link) {
+                (Some(_), Some(id)) => (
                     Stratum::new(Some(id), flags, g.distance, scale),
                     set.anchor(id).radiance(),
                 ),
-                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => {
-                    (Stratum::new(None, flags, g.distance, scale), dyn_rad[si])
-                }
-                (Some(sp), _) => {
-                    let id = att.attach(set, sp);
-                    (
-                        Stratum::new(Some(id), flags, g.distance, scale),
-                        set.anchor(id).radiance(),
-                    )
-                }
+                (Some(_), None) => (Stratum::new(None, flags, g.distance, scale), dyn_rad[si]),
                 (None, _) => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
             };
             strata.push(stratum);

@@ -60,7 +60,16 @@ impl GatherEstimate<'_> {
     }
 }
 
-/// Timings and counts of one frame's global illumination (the paper's Table 1 rows).
+/// Timings and counts of one frame's global illumination (the paper's Table 1 rows), in
+/// seconds of the frame's wall time. Each phase is attributed where its work happens: the
+/// prepare phase's parallel loops by wall-clock spans around each (photon tracing, gather
+/// rays, estimates and attachment); the parallel shading pass by thread seconds accumulated
+/// per row at each work site, its wall time split among the rows in their proportion —
+/// direct light to `direct_lighting`, interpolation (with bucketing and glossy rays) to
+/// `cache_interpolation`, and the fallback for samples no record covers (a final gather on
+/// the spot) to `final_gathering` (its rays) and `irradiance_estimation` (their photon
+/// look-ups). So the rows add up to the frame's time, less scene evaluation, BVHs, output
+/// and the bookkeeping between phases.
 #[derive(Debug, Clone, Default)]
 pub struct CachedStats {
     pub photon_tracing: f64,
@@ -72,9 +81,12 @@ pub struct CachedStats {
     pub direct_lighting: f64,
     pub photons: u64,
     pub caches: u64,
+    /// Final-gather rays: the prepare phase's and the uncached fallback's.
     pub rays_shot: u64,
-    /// Pixel samples no record covered, gathered on the spot.
+    /// Pixel samples no record covered, gathered on the spot, and the rays they traced
+    /// (part of `rays_shot`).
     pub uncached_samples: u64,
+    pub uncached_rays: u64,
     /// The anchor method's statistics.
     pub anchors: Option<AnchorStats>,
 }
@@ -251,13 +263,33 @@ pub fn render_in_bands(
     used.sort_unstable();
     used.dedup();
     cache.touch(&used, ctx.frame);
-    let (td, ti): (f64, f64) = rows
-        .iter()
-        .fold((0.0, 0.0), |(a, b), r| (a + r.t_direct, b + r.t_interp));
     st.uncached_samples = rows.iter().map(|r| r.uncached).sum();
-    let frac = if td + ti > 0.0 { ti / (td + ti) } else { 0.0 };
-    st.cache_interpolation = wall * frac + planning;
-    st.direct_lighting = wall * (1.0 - frac);
+    st.uncached_rays = rows.iter().map(|r| r.uncached_rays).sum();
+    st.rays_shot += st.uncached_rays;
+    // The shading pass's wall time, split in proportion to the thread seconds measured at
+    // each work site (CachedStats): camera rays and film bookkeeping, measured nowhere,
+    // are spread in the same proportion.
+    let sum = |f: fn(&ShadeRow) -> f64| rows.iter().map(f).sum::<f64>();
+    let site = [
+        sum(|r| r.t_direct),
+        sum(|r| r.t_interp),
+        sum(|r| r.t_gather),
+        sum(|r| r.t_estimate),
+    ];
+    let threads: f64 = site.iter().sum();
+    let share = |i: usize| {
+        if threads > 0.0 {
+            wall * site[i] / threads
+        } else if i == 0 {
+            wall
+        } else {
+            0.0
+        }
+    };
+    st.direct_lighting = share(0);
+    st.cache_interpolation = share(1) + planning;
+    st.final_gathering += share(2);
+    st.irradiance_estimation += share(3);
     let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
     Ok((img, counts, st))
 }
@@ -427,9 +459,16 @@ pub struct ShadeRow {
     counts: RenderCounts,
     /// Records that contributed to a pixel (§4.3: they stay alive).
     used: Vec<u32>,
+    /// Thread seconds at the work sites (the rows of [`CachedStats`]): direct light,
+    /// interpolation (bucketing and glossy rays included), and the uncached fallback's gather
+    /// rays and photon look-ups.
     t_direct: f64,
     t_interp: f64,
+    t_gather: f64,
+    t_estimate: f64,
     uncached: u64,
+    /// Gather rays the uncached fallback traced.
+    uncached_rays: u64,
     /// The planning pass's bucketing plans, with their pixel's index.
     plans: Vec<(u32, Option<BucketPlan>)>,
 }
@@ -513,13 +552,17 @@ impl CachedShading<'_> {
                 reshot: i.reshot,
             },
             None => {
+                // Timed apart from interpolation: a final gather and its photon look-ups.
                 row.uncached += 1;
+                let t0 = Instant::now();
                 let hits = gather::trace_strata(
                     ctx.scene,
                     at,
                     gather::uncached_record_id(pixel),
                     self.params,
                 );
+                let t1 = Instant::now();
+                row.uncached_rays += hits.len() as u64;
                 let strata = (self.params.strata[0] * self.params.strata[1]) as f32;
                 let e = hits
                     .iter()
@@ -527,6 +570,8 @@ impl CachedShading<'_> {
                     .map(|sp| self.estimate.radiance(sp, ctx.materials))
                     .sum::<Vec3>()
                     * (PI / strata);
+                row.t_gather += (t1 - t0).as_secs_f64();
+                row.t_estimate += t1.elapsed().as_secs_f64();
                 CacheValue {
                     irradiance: e,
                     anchor_id: 0,
@@ -581,6 +626,7 @@ impl Shade for CachedShading<'_> {
         let l_direct =
             hit.direct_light(ctx, &bsdf, self.light_samples, &mut row.counts.shadow_rays);
         let t1 = Instant::now();
+        let fallback_before = row.t_gather + row.t_estimate;
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
         let key = Self::key(ctx, sp);
@@ -627,7 +673,9 @@ impl Shade for CachedShading<'_> {
             }
         };
         row.t_direct += (t1 - t0).as_secs_f64();
-        row.t_interp += t1.elapsed().as_secs_f64();
+        // Interpolation's share: the sample's time after direct light, less the fallback's.
+        let fallback = row.t_gather + row.t_estimate - fallback_before;
+        row.t_interp += (t1.elapsed().as_secs_f64() - fallback).max(0.0);
         acc.hit(
             hit.depth(ctx),
             sp.emission(ctx.materials),

@@ -391,3 +391,54 @@ fn compare_reports_every_method_with_a_table_json_and_plot() {
     let svg = std::fs::read_to_string(dir.path().join("out/compare.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("brute-force/draft"));
 }
+
+/// Pixel samples no cache record covers gather on the spot: their rays count in
+/// `rays_shot` (brute force: M·N per record and per such sample), and the stats' stages are seconds of the frame that add up to no more than
+/// the frame's time. Records valid out to a hundredth of a pixel make such samples common
+/// wherever a pixel's samples leave the surface its centre sees.
+#[test]
+fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
+    use anchorage::{pipeline, session::FrameState};
+    let tiny = r#","min_spacing_px":0.01,"max_spacing_px":0.01"#;
+    for method in ["brute-force", "anchors"] {
+        let job = super::anchors::example(method, tiny);
+        let strata = 8 * 24; // the draft preset's M·N
+        let scene = job.load_scene().unwrap();
+        let resources = pipeline::new_resources(&job, &scene).unwrap();
+        let mut state = FrameState::default();
+        for frame in 0..2 {
+            let mut st = pipeline::new_stats(&job, frame);
+            let t0 = std::time::Instant::now();
+            pipeline::render_frame(&job, &scene, &resources, &mut state, frame, &mut st).unwrap();
+            let elapsed = t0.elapsed().as_secs_f64();
+            let c = &st.counts;
+            eprintln!(
+                "{method} frame {frame}: {} uncached samples, {} rays, {} prepare rays",
+                c.uncached_samples, c.rays_shot, c.rays_reshot
+            );
+            assert!(c.uncached_samples > 0, "the test needs uncached samples");
+            if method == "brute-force" {
+                // Every record gathers every stratum once a frame.
+                assert_eq!(c.rays_reshot, c.caches * strata);
+                assert_eq!(c.rays_shot, (c.caches + c.uncached_samples) * strata);
+            } else {
+                assert!(c.rays_shot >= c.uncached_samples * strata + c.rays_reshot);
+            }
+            let t = &st.timings_s;
+            let rows = t.scene_evaluation
+                + t.dynamic_bvh
+                + t.photon_tracing
+                + t.irradiance_estimation
+                + t.final_gathering
+                + t.cache_interpolation
+                + t.visibility
+                + t.depth_maps
+                + t.direct_lighting;
+            eprintln!("  stages {rows:.4} s of {elapsed:.4} s: {t:?}");
+            assert!(
+                rows <= elapsed,
+                "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
+            );
+        }
+    }
+}
