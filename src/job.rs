@@ -293,6 +293,16 @@ pub struct MethodSettings {
     pub max_spacing_px: Option<f32>,
     /// Frames a cache record may go unused before it is removed. Default 2.
     pub max_age: Option<u32>,
+    /// The paper's N (§4.3): a pixel read from more than this many cache records is
+    /// crowded, and the least influential records there are removed (`weber_threshold`),
+    /// each only while every pixel it serves keeps this many; 1..=64. Default 6.
+    #[schemars(range(min = 1, max = 64))]
+    pub weber_records: Option<u32>,
+    /// A record in a crowded pixel is removed after the frame where its Weber fraction δ
+    /// (§4.3, Equation 1: the sum over the pixels it serves of the relative change of each
+    /// when it is left out) is below this; 0 keeps every record. Default 0.5.
+    #[schemars(range(min = 0, max = 1000))]
+    pub weber_threshold: Option<f32>,
     /// `path-trace` samples per pixel. Default: the preset's (64, 256, 1024).
     #[schemars(range(min = 1, max = 1_048_576))]
     pub path_samples: Option<u32>,
@@ -365,6 +375,12 @@ impl MethodSettings {
         if let Some(v) = self.max_age {
             p.cache.max_age = v;
         }
+        if let Some(v) = self.weber_records {
+            p.cache.weber_records = v;
+        }
+        if let Some(v) = self.weber_threshold {
+            p.cache.weber_threshold = v;
+        }
         if let Some(v) = self.path_samples {
             p.path_samples = v;
         }
@@ -430,6 +446,15 @@ impl MethodSettings {
             && p.cache.max_spacing_px.is_finite())
         {
             return bad("min_spacing_px", "must be > 0 and <= max_spacing_px");
+        }
+        if !(1..=64).contains(&p.cache.weber_records) {
+            return bad("weber_records", "must be 1..=64");
+        }
+        if !(0.0..=1000.0).contains(&p.cache.weber_threshold) {
+            return bad(
+                "weber_threshold",
+                "must be in [0, 1000] (0 keeps every record)",
+            );
         }
         if p.glossy.bucket.strata.iter().any(|&s| s == 0 || s > 256) {
             return bad("glossy_bucket_strata", "each must be 1..=256");

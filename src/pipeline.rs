@@ -157,6 +157,7 @@ pub fn render_frame_with(
             c.caches = gs.caches;
             c.rays_shot = gs.rays_shot;
             c.uncached_samples = gs.uncached_samples;
+            c.caches_retired = gs.caches_retired;
             c.rays_reshot = gs.rays_shot - gs.uncached_rays;
             if let Some(a) = &gs.anchors {
                 stats.visibility = Some(resources.visibility.name());

@@ -57,6 +57,11 @@ pub struct Counts {
     pub photons: u64,
     /// Irradiance cache records in use this frame.
     pub caches: u64,
+    /// Records the Weber rule (paper §4.3; `method.weber_threshold`) removes after this
+    /// frame: they had the least influence on pixels read from more than
+    /// `method.weber_records` records.
+    #[serde(default)]
+    pub caches_retired: u64,
     /// Final-gather rays traced this frame, those of `uncached_samples` included.
     pub rays_shot: u64,
     /// Pixel samples no cache record covered, gathered on the spot.

@@ -14,6 +14,7 @@
 pub mod gather;
 mod grid;
 pub mod record;
+pub mod removal;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -23,6 +24,7 @@ use serde::{Deserialize, Serialize};
 pub use gather::{GatherHit, GatherTimings, Resolve};
 use grid::{REACH, RecordGrid};
 pub use record::{ENCLOSED_SHARE, HIT_BACK, HIT_DYNAMIC, Record, Stratum, finish_record};
+pub use removal::{Contribution, WeberTally};
 
 use crate::geom::Motion;
 use crate::interaction::{SurfacePoint, trace_camera};
@@ -42,6 +44,13 @@ pub struct CacheParams {
     pub max_spacing_px: f32,
     /// Frames a record may go unused before it is removed (§4.3). Default 2.
     pub max_age: u32,
+    /// §4.3's N: a pixel read from more than this many records is crowded, and records
+    /// there may be removed by their Weber fraction ([`removal`]). Default 6.
+    pub weber_records: u32,
+    /// A record in a crowded pixel whose Weber fraction δ (Equation 1: the summed relative
+    /// change of the pixels it contributes to when it is left out) is below this is removed
+    /// after the frame; 0 turns the rule off. Default 0.5.
+    pub weber_threshold: f32,
 }
 
 impl Default for CacheParams {
@@ -52,6 +61,8 @@ impl Default for CacheParams {
             min_spacing_px: 2.0,
             max_spacing_px: 24.0,
             max_age: 2,
+            weber_records: 6,
+            weber_threshold: 0.5,
         }
     }
 }
@@ -124,6 +135,17 @@ impl<'de> Deserialize<'de> for IrradianceCache {
         Ok(cache)
     }
 }
+
+/// The shading relaxes Ward's threshold to this multiple of a before it gathers on the spot
+/// where no record is valid (`crate::integrator::cached`); placement covers camera samples
+/// to the same threshold ([`IrradianceCache::place`]).
+pub const RELAXED: f32 = REACH;
+
+/// [`Record::last_used`] of a record [`IrradianceCache::retire`] marked.
+const RETIRED: i32 = i32::MIN;
+
+/// Rounds of [`IrradianceCache::place_at_samples`] at most.
+pub const SAMPLE_ROUNDS: usize = 4;
 
 /// World size of one pixel at `x` as seen by `camera` for an image `height` pixels tall.
 pub fn pixel_footprint(camera: &FrameCamera, x: Vec3, height: u32) -> f32 {
@@ -198,11 +220,24 @@ impl IrradianceCache {
         }
     }
 
-    /// Drops dynamic records, and static ones unused for more than `max_age` frames (§4.3).
+    /// Drops dynamic records, static ones unused for more than `max_age` frames, and those
+    /// [`IrradianceCache::retire`] marked (§4.3).
     pub fn expire(&mut self, frame: i32, max_age: u32) {
-        self.records
-            .retain(|r| r.motion == Motion::Static && frame - r.last_used <= max_age as i32);
+        self.records.retain(|r| {
+            r.motion == Motion::Static
+                && r.last_used != RETIRED
+                && frame.saturating_sub(r.last_used) <= max_age as i32
+        });
         self.rebuild_tree();
+    }
+
+    /// Marks records for removal at the next [`IrradianceCache::expire`] (the Weber rule of
+    /// §4.3 decides after a frame, and the next frame removes them with the stale ones, so
+    /// that the anchors they alone referenced are collected then).
+    pub fn retire(&mut self, records: &[u32]) {
+        for &i in records {
+            self.records[i as usize].last_used = RETIRED;
+        }
     }
 
     fn insert(&mut self, r: Record) {
@@ -230,14 +265,16 @@ impl IrradianceCache {
     }
 
     /// Interpolated irradiance at (x, n) from records whose weight exceeds 1/a, with
-    /// gradients; `None` where no record is valid. `used` receives contributing records.
+    /// gradients; `None` where no record is valid. `parts` receives the contributing records
+    /// with their weights and extrapolated values (it is cleared first).
     pub fn interpolate(
         &self,
         x: Vec3,
         n: Vec3,
         a: f32,
-        used: &mut Vec<u32>,
+        parts: &mut Vec<Contribution>,
     ) -> Option<Interpolated> {
+        parts.clear();
         if self.records.is_empty() {
             return None;
         }
@@ -257,13 +294,18 @@ impl IrradianceCache {
             if w <= 1.0 / a {
                 continue;
             }
-            sum += w * r.extrapolate(x, n).max(Vec3::ZERO);
+            let value = r.extrapolate(x, n).max(Vec3::ZERO);
+            sum += w * value;
             wsum += w;
             reshot += w * r.reshot;
             if w > dominant.0 {
                 dominant = (w, i);
             }
-            used.push(i);
+            parts.push(Contribution {
+                record: i,
+                weight: w,
+                value,
+            });
         }
         (wsum > 0.0).then(|| Interpolated {
             irradiance: sum / wsum,
@@ -328,7 +370,9 @@ impl IrradianceCache {
     }
 
     /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
-    /// grids from `coarsest` down to 1.
+    /// grids from `coarsest` down to 1, then [`IrradianceCache::place_at_samples`] for
+    /// `samples`, the points off the pixel centres where this frame's camera samples will
+    /// read the cache.
     #[allow(clippy::too_many_arguments)] // placement needs the view and the method
     pub fn place(
         &mut self,
@@ -337,6 +381,7 @@ impl IrradianceCache {
         height: u32,
         p: &CacheParams,
         frame_number: i32,
+        samples: &[(u32, SurfacePoint)],
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
@@ -366,6 +411,68 @@ impl IrradianceCache {
                 break;
             }
             spacing /= 2;
+        }
+        self.place_at_samples(
+            frame,
+            width,
+            height,
+            p,
+            frame_number,
+            samples,
+            resolve,
+            timings,
+        );
+    }
+
+    /// Records for the `samples` (pixel index, surface point; in pixel order) that no record
+    /// covers even at the shading's relaxed threshold ([`RELAXED`]·a): a camera sample whose
+    /// surface differs from its pixel centre's (an edge, a thin prop) reads the cache at its
+    /// own point, which the pixel-centre grids need not cover. In rounds: each takes, in
+    /// order, the uncovered points with no point taken in the round within
+    /// `min_spacing_px` pixels (a record is valid at least that far on its surface), gathers
+    /// them together, and leaves the rest to be checked again against the new records. A
+    /// point still uncovered after [`SAMPLE_ROUNDS`] rounds (or under an enclosed record) is
+    /// gathered on the spot when shaded.
+    #[allow(clippy::too_many_arguments)] // `place`'s
+    fn place_at_samples(
+        &mut self,
+        frame: &FrameScene,
+        width: u32,
+        height: u32,
+        p: &CacheParams,
+        frame_number: i32,
+        samples: &[(u32, SurfacePoint)],
+        resolve: &mut Resolve,
+        timings: &mut GatherTimings,
+    ) {
+        let reach = p.min_spacing_px.max(1.0) as i64;
+        let mut pending: Vec<&(u32, SurfacePoint)> = samples.iter().collect();
+        for _ in 0..SAMPLE_ROUNDS {
+            pending = pending
+                .into_par_iter()
+                .filter(|(_, sp)| !self.covers(sp.position, sp.ns, RELAXED * p.error))
+                .collect();
+            if pending.is_empty() {
+                return;
+            }
+            let mut taken = vec![false; (width as usize) * (height as usize)];
+            let mut chosen = Vec::new();
+            for &&(pixel, sp) in &pending {
+                let (x, y) = ((pixel % width) as i64, (pixel / width) as i64);
+                let near = (-reach..=reach).any(|dy| {
+                    (-reach..=reach).any(|dx| {
+                        let (u, v) = (x + dx, y + dy);
+                        (0..width as i64).contains(&u)
+                            && (0..height as i64).contains(&v)
+                            && taken[(v * width as i64 + u) as usize]
+                    })
+                });
+                if !near {
+                    taken[pixel as usize] = true;
+                    chosen.push((pixel, sp));
+                }
+            }
+            self.add_records(frame, &chosen, height, p, frame_number, resolve, timings);
         }
     }
 
@@ -543,13 +650,20 @@ mod tests {
         let sp = crate::interaction::trace(&frame, o, -Vec3::Y).unwrap();
         assert!(sp.ns.y > 0.99, "the floor's side facing the box");
         let hits = gather::trace_strata(&frame, &sp, 7, &p);
-        let lit = |_: &SurfacePoint| Vec3::ONE;
-        let (strata, rad) = estimate_all(&[0.1], vec![hits], &lit).remove(0);
+        // No photon reaches the inside of the box; the outside of everything is lit.
+        let lit = |sp: &SurfacePoint| if sp.front { Vec3::ONE } else { Vec3::ZERO };
+        let (strata, rad) = estimate_all(&[0.1], vec![hits.clone()], &lit).remove(0);
         let r = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0);
         assert!(
             r.enclosed,
-            "every ray of a gather inside the box hits a back face"
+            "every ray of a gather inside the box hits an unlit back face"
         );
+        // The same gather where the back faces reflect light (a mesh wound the other way
+        // from its neighbours, as Sponza's LOD is): nothing is enclosed there.
+        let everywhere = |_: &SurfacePoint| Vec3::ONE;
+        let (strata, rad) = estimate_all(&[0.1], vec![hits], &everywhere).remove(0);
+        let lit_back = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0);
+        assert!(!lit_back.enclosed, "lit back faces are no inside");
         let mut cache = IrradianceCache::default();
         cache.set_error(p.error);
         cache.insert(r.clone());

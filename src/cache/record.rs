@@ -21,11 +21,11 @@ use crate::interaction::SurfacePoint;
 /// Stratum flag: the gather ray hit a dynamic prim (its radiance was estimated directly).
 pub const HIT_DYNAMIC: u8 = 1;
 
-/// Stratum flag: the gather ray hit the back of a surface. A record most of whose rays do
-/// lies inside closed geometry (see [`Record::enclosed`]).
+/// Stratum flag: the gather ray hit the back of a surface. A record most of whose rays hit
+/// unlit back faces lies inside closed geometry (see [`Record::enclosed`]).
 pub const HIT_BACK: u8 = 2;
 
-/// The share of a record's strata that must hit back faces for the record to count as
+/// The share of a record's strata that must hit unlit back faces for the record to count as
 /// enclosed. Inside a closed object every ray does; above a single-sided lamp panel or
 /// behind a lone wall only the rays towards it do, and the rest escape or meet front faces.
 pub const ENCLOSED_SHARE: f32 = 0.5;
@@ -107,11 +107,14 @@ pub struct Record {
     pub reshot: f32,
     /// The anchor contributing most of the record's irradiance.
     pub dominant_anchor: Option<AnchorId>,
-    /// More than [`ENCLOSED_SHARE`] of the strata hit back faces: the record's gather
-    /// started inside closed geometry — a static record on a floor that a dynamic prim now
-    /// stands on, or a point whose ray origin lies past a contact. Its irradiance (zero, or
-    /// what the inside of a prim reflects) is not the surface's, so interpolation and
-    /// placement ignore it: it is not used, and expires after `max_age` frames (§4.3).
+    /// More than [`ENCLOSED_SHARE`] of the strata hit back faces that reflect no light: the
+    /// record's gather started inside closed geometry — a static record on a floor that a
+    /// dynamic prim now stands on, or a point whose ray origin lies past a contact. Its
+    /// irradiance (zero, or what the inside of a prim reflects) is not the surface's, so
+    /// interpolation and placement ignore it: it is not used, and expires after `max_age`
+    /// frames (§4.3). Back faces that reflect light are not the inside of anything: meshes
+    /// wound the other way from their neighbours (decimated or mirrored exports, Sponza's
+    /// LOD among them) show them to the room, and photons land on them from that side.
     pub enclosed: bool,
 }
 
@@ -144,7 +147,11 @@ pub fn finish_record(
     let [m, n] = p.strata;
     let scale = PI / (m * n) as f32;
     let irradiance = radiance.iter().sum::<Vec3>() * scale;
-    let back = strata.iter().filter(|s| s.flags() & HIT_BACK != 0).count();
+    let back = strata
+        .iter()
+        .zip(radiance)
+        .filter(|(s, l)| s.flags() & HIT_BACK != 0 && l.max_element() <= 0.0)
+        .count();
     let enclosed = back as f32 > ENCLOSED_SHARE * strata.len() as f32;
     let inv: f32 = strata
         .iter()

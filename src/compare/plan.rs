@@ -58,10 +58,12 @@ pub enum Setting {
     /// Anchor bucketing's θ × φ cells (`glossy_bucket_strata`), with `glossy_mode` bucketing
     /// (the cells mean nothing otherwise).
     BucketStrata([u32; 2]),
+    /// The Weber rule's threshold (`weber_threshold`; 0 keeps every record).
+    Weber(f32),
 }
 
 const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k=, visibility=, \
-                        glossy=bucketing|importance, glossy_rays= or bucket_strata=MxN with comma-separated values";
+                        glossy=bucketing|importance, glossy_rays=, bucket_strata=MxN or weber= with comma-separated values";
 
 impl Plan {
     /// Parses and checks `flags` against `job`: every swept value is checked like a
@@ -161,7 +163,7 @@ impl Setting {
                 let v = v.trim();
                 Setting::parse(key, v).ok_or_else(|| match key {
                     "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" | "glossy"
-                    | "glossy_rays" | "bucket_strata" => {
+                    | "glossy_rays" | "bucket_strata" | "weber" => {
                         format!("{v:?} is not a value of {key} ({SETTINGS})")
                     }
                     _ => format!("unknown setting {key:?}: {SETTINGS}"),
@@ -196,6 +198,7 @@ impl Setting {
                 let (m, n) = v.split_once('x')?;
                 Setting::BucketStrata([m.parse().ok()?, n.parse().ok()?])
             }
+            "weber" => Setting::Weber(v.parse().ok()?),
             _ => return None,
         })
     }
@@ -215,6 +218,7 @@ impl Setting {
                 m.glossy_bucket_strata = Some(v);
                 m.glossy_mode = Some(GlossyMode::Bucketing);
             }
+            Setting::Weber(v) => m.weber_threshold = Some(v),
         }
     }
 
@@ -230,6 +234,7 @@ impl Setting {
             Setting::Glossy(GlossyMode::Importance) => "glossy=importance".into(),
             Setting::GlossyRays(v) => format!("glossy_rays={v}"),
             Setting::BucketStrata([m, n]) => format!("bucket_strata={m}x{n}"),
+            Setting::Weber(v) => format!("weber={v}"),
         }
     }
 }

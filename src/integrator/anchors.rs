@@ -32,6 +32,7 @@ use crate::cache::gather::{self, GatherHit, GatherTimings};
 use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Stratum};
 use crate::color::luminance;
 use crate::geom::Motion;
+use crate::interaction::SurfacePoint;
 use crate::photon::PhotonMap;
 use crate::scene::FrameScene;
 use crate::visibility::{self, DynamicSet, StrataBits, Visibility};
@@ -142,6 +143,7 @@ fn resolve(
 
 /// One frame of the anchor method's cache work (Pseudocode 2): everything up to shading,
 /// phase by phase.
+#[allow(clippy::too_many_arguments)] // the frame, its state and photons, and placement's points
 pub fn update(
     ctx: &FrameContext,
     cache: &mut IrradianceCache,
@@ -149,6 +151,7 @@ pub fn update(
     pm: &PhotonMap,
     params: &GiParams,
     vis: &dyn Visibility,
+    samples: &[(u32, SurfacePoint)],
     timings: &mut GatherTimings,
 ) -> Result<AnchorStats, visibility::Error> {
     let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
@@ -192,7 +195,7 @@ pub fn update(
 
     st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &flags, cp, timings);
 
-    place_records(ctx, &att, set, cache, cp, timings);
+    place_records(ctx, &att, set, cache, cp, samples, timings);
 
     let refs = anchor_references(set, cache);
     if removed {
@@ -476,13 +479,15 @@ fn update_records(
     cache.replace_records(updated);
 }
 
-/// New records where the image needs them; all their strata attach.
+/// New records where the image needs them (at the camera samples' lookup `samples` too);
+/// all their strata attach.
 fn place_records(
     ctx: &FrameContext,
     att: &Attacher,
     set: &mut AnchorSet,
     cache: &mut IrradianceCache,
     cp: &CacheParams,
+    samples: &[(u32, SurfacePoint)],
     timings: &mut GatherTimings,
 ) {
     let first_new = cache.len();
@@ -495,6 +500,7 @@ fn place_records(
             ctx.height,
             cp,
             ctx.frame,
+            samples,
             &mut resolver,
             timings,
         );

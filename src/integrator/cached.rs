@@ -24,7 +24,10 @@ use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCo
 use crate::accel::Hit;
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::bsdf::Lobes;
-use crate::cache::{CacheParams, GatherHit, GatherTimings, IrradianceCache, gather};
+use crate::cache::{
+    CacheParams, Contribution, GatherHit, GatherTimings, IrradianceCache, RELAXED, WeberTally,
+    gather,
+};
 use crate::geom::Motion;
 use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
@@ -81,6 +84,8 @@ pub struct CachedStats {
     pub direct_lighting: f64,
     pub photons: u64,
     pub caches: u64,
+    /// Records the Weber rule (§4.3) removes after this frame.
+    pub caches_retired: u64,
     /// Final-gather rays: the prepare phase's and the uncached fallback's.
     pub rays_shot: u64,
     /// Pixel samples no record covered, gathered on the spot, and the rays they traced
@@ -184,6 +189,7 @@ pub fn render_in_bands(
             &mut gt,
         ));
     } else if method == CachedMethod::Anchors {
+        let samples = lookup_points(ctx, spp);
         if refresh.albedo
             && let Some(set) = state.anchors.as_mut()
         {
@@ -196,10 +202,12 @@ pub fn render_in_bands(
             &pm,
             params,
             visibility,
+            &samples,
             &mut gt,
         )?);
     } else {
-        prepare_brute_force(ctx, cache, &params.cache, estimate, &mut gt);
+        let samples = lookup_points(ctx, spp);
+        prepare_brute_force(ctx, cache, &params.cache, estimate, &samples, &mut gt);
     }
     st.final_gathering = gt.final_gathering;
     st.irradiance_estimation += gt.irradiance_estimation;
@@ -263,6 +271,19 @@ pub fn render_in_bands(
     used.sort_unstable();
     used.dedup();
     cache.touch(&used, ctx.frame);
+    if params.cache.weber_threshold > 0.0 {
+        let mut tally = WeberTally::default();
+        for r in &rows {
+            tally.append(&r.weber);
+        }
+        let removed = tally.removals(
+            cache.len(),
+            params.cache.weber_records,
+            params.cache.weber_threshold,
+        );
+        cache.retire(&removed);
+        st.caches_retired = removed.len() as u64;
+    }
     st.uncached_samples = rows.iter().map(|r| r.uncached).sum();
     st.uncached_rays = rows.iter().map(|r| r.uncached_rays).sum();
     st.rays_shot += st.uncached_rays;
@@ -295,12 +316,14 @@ pub fn render_in_bands(
 }
 
 /// The prepare phase of `brute-force` and `precomputed`: stale records dropped, every
-/// stratum of every record re-gathered, new records placed; every gather hit estimated.
+/// stratum of every record re-gathered, new records placed (at the camera samples' lookup
+/// `samples` too); every gather hit estimated.
 fn prepare_brute_force(
     ctx: &FrameContext,
     cache: &mut IrradianceCache,
     cp: &CacheParams,
     estimate: GatherEstimate,
+    samples: &[(u32, SurfacePoint)],
     gt: &mut GatherTimings,
 ) {
     let m = ctx.materials;
@@ -310,7 +333,7 @@ fn prepare_brute_force(
     cache.expire(ctx.frame, cp.max_age);
     cache.regather(ctx.scene, cp, ctx.frame, &mut brute, gt);
     cache.place(
-        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, &mut brute, gt,
+        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, samples, &mut brute, gt,
     );
 }
 
@@ -459,6 +482,9 @@ pub struct ShadeRow {
     counts: RenderCounts,
     /// Records that contributed to a pixel (§4.3: they stay alive).
     used: Vec<u32>,
+    /// The last cache read's contributions, and every read's for the Weber rule (§4.3).
+    parts: Vec<Contribution>,
+    weber: WeberTally,
     /// Thread seconds at the work sites (the rows of [`CachedStats`]): direct light,
     /// interpolation (bucketing and glossy rays included), and the uncached fallback's gather
     /// rays and photon look-ups.
@@ -503,6 +529,22 @@ pub struct CachedPixel {
 }
 
 impl CachedPixel {
+    /// The pixel centre's surface (module doc of [`CachedShading`]), and `plans`.
+    fn new(ctx: &FrameContext, x: u32, y: u32, plans: std::ops::Range<usize>) -> Self {
+        let (_, centre) = trace_camera(
+            ctx.scene,
+            (x as f32 + 0.5) / ctx.width as f32,
+            (y as f32 + 0.5) / ctx.height as f32,
+        );
+        CachedPixel {
+            index: y * ctx.width + x,
+            centre,
+            last: None,
+            bucketed: None,
+            plans,
+        }
+    }
+
     /// Where the pixel's samples on surface `key` read the cache: the pixel centre's surface
     /// point when the sample `sp` lies on that surface, facing the same way, else `sp`.
     fn shading_point<'p>(
@@ -515,6 +557,75 @@ impl CachedPixel {
             Some(c) if CachedShading::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
             _ => sp,
         }
+    }
+
+    /// Whether sample `sp` (on surface `key`) reads the cache where the pixel's previous
+    /// read serves it: the same prim, facing the same way.
+    fn reuses_last(&self, key: SurfaceKey, sp: &SurfacePoint) -> Option<CacheValue> {
+        match self.last {
+            Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => Some(v),
+            _ => None,
+        }
+    }
+}
+
+/// The points off the pixel centres where this frame's camera samples will read the cache,
+/// found by the shading's own choices ([`CachedPixel::shading_point`],
+/// [`CachedPixel::reuses_last`]) without shading: the cache places records for those no
+/// record covers ([`IrradianceCache::place`]), so that the shading rarely has to gather on
+/// the spot. In pixel order.
+pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
+    let rows = super::render_pixel_rows(ctx, spp, &LookupPoints, 0..ctx.height);
+    rows.into_iter().flat_map(|(_, row)| row.points).collect()
+}
+
+/// The probe of [`lookup_points`].
+struct LookupPoints;
+
+/// What [`LookupPoints`] finds in a row.
+#[derive(Default)]
+struct LookupRow {
+    counts: RenderCounts,
+    points: Vec<(u32, SurfacePoint)>,
+}
+
+impl AsMut<RenderCounts> for LookupRow {
+    fn as_mut(&mut self) -> &mut RenderCounts {
+        &mut self.counts
+    }
+}
+
+impl Shade for LookupPoints {
+    type Row = LookupRow;
+    type Pixel = CachedPixel;
+
+    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
+        CachedPixel::new(ctx, x, y, 0..0)
+    }
+
+    fn sample(
+        &self,
+        ctx: &FrameContext,
+        pixel: &mut CachedPixel,
+        row: &mut LookupRow,
+        hit: &CameraHit,
+        _: &mut Accumulator,
+    ) {
+        let sp = &hit.sp;
+        let key = CachedShading::key(ctx, sp);
+        if pixel.reuses_last(key, sp).is_some() {
+            return;
+        }
+        // The pixel centre needs nothing: the finest placement grid covered it.
+        if std::ptr::eq(pixel.shading_point(ctx, key, sp), sp) {
+            row.points.push((pixel.index, *sp));
+        }
+        let none = CacheValue {
+            irradiance: Vec3::ZERO,
+            anchor_id: 0,
+            reshot: 0.0,
+        };
+        pixel.last = Some((key, sp.ns, none));
     }
 }
 
@@ -536,13 +647,18 @@ impl CachedShading<'_> {
         row: &mut ShadeRow,
     ) -> CacheValue {
         let a = self.params.error;
+        let parts = &mut row.parts;
         let found = self
             .cache
-            .interpolate(at.position, at.ns, a, &mut row.used)
+            .interpolate(at.position, at.ns, a, parts)
             .or_else(|| {
                 self.cache
-                    .interpolate(at.position, at.ns, 2.0 * a, &mut row.used)
+                    .interpolate(at.position, at.ns, RELAXED * a, parts)
             });
+        row.used.extend(parts.iter().map(|c| c.record));
+        if found.is_some() && self.params.weber_threshold > 0.0 {
+            row.weber.read(parts);
+        }
         match found {
             Some(i) => CacheValue {
                 irradiance: i.irradiance,
@@ -589,23 +705,11 @@ impl Shade for CachedShading<'_> {
     /// The pixel centre's surface: interpolation for the pixel's samples on that surface
     /// happens there, which does not move with the per-frame sample jitter.
     fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
-        let (_, centre) = trace_camera(
-            ctx.scene,
-            (x as f32 + 0.5) / ctx.width as f32,
-            (y as f32 + 0.5) / ctx.height as f32,
-        );
-        let index = y * ctx.width + x;
         let plans = match self.pass {
-            BucketPass::Shade(Some(band)) => band.of_pixel(index),
+            BucketPass::Shade(Some(band)) => band.of_pixel(y * ctx.width + x),
             _ => 0..0,
         };
-        CachedPixel {
-            index,
-            centre,
-            last: None,
-            bucketed: None,
-            plans,
-        }
+        CachedPixel::new(ctx, x, y, plans)
     }
 
     fn sample(
@@ -630,9 +734,9 @@ impl Shade for CachedShading<'_> {
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
         let key = Self::key(ctx, sp);
-        let value = match pixel.last {
-            Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
-            _ => {
+        let value = match pixel.reuses_last(key, sp) {
+            Some(v) => v,
+            None => {
                 let at = pixel.shading_point(ctx, key, sp);
                 let v = self.lookup(ctx, at, pixel.index, row);
                 pixel.last = Some((key, sp.ns, v));

@@ -3,6 +3,7 @@ mod anchors;
 mod cli;
 pub mod common;
 mod controls;
+mod density;
 mod gi;
 mod glossy;
 mod gpu;
