@@ -28,6 +28,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::importons::Importons;
+use super::kdtree::Neighbours;
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree};
 use crate::accel::{gamma, offset_ray_origin};
 use crate::interaction::{Materials, SurfacePoint};
@@ -99,7 +100,7 @@ impl Attacher<'_> {
             linked,
             d_max,
             found: None,
-            near: Vec::new(),
+            near: Neighbours::new(),
             visited: 0,
         };
         if let Some(a) = linked
@@ -235,7 +236,7 @@ struct Search {
     /// The anchor found, if any, and the nearest anchors within D_max the search tried
     /// (squared distance, id).
     found: Option<AnchorId>,
-    near: Vec<(f32, u32)>,
+    near: Neighbours,
     /// Nodes of the anchor kd-tree the search visited (0: it made none).
     visited: u64,
 }
