@@ -438,9 +438,9 @@ impl PhotonMap {
     pub fn nearest(&self, x: Vec3) -> Option<usize> {
         let t = self.tree.as_ref()?;
         let r2_max = self.max_radius * self.max_radius;
-        t.nearest_n_within::<SquaredEuclidean>(&x.to_array(), r2_max, NonZero::<usize>::MIN, false)
-            .first()
-            .map(|nb| nb.item as usize)
+        // kiddo's single-neighbour query keeps no result list (the n-nearest one allocates).
+        let nb = t.nearest_one::<SquaredEuclidean>(&x.to_array());
+        (nb.distance <= r2_max).then_some(nb.item as usize)
     }
 
     /// Total flux stored in the map.
