@@ -101,3 +101,97 @@ fn the_weber_rule_thins_crowded_records_and_keeps_the_image() {
         }
     }
 }
+
+/// The bytes of a base64 text (standard alphabet, padded).
+fn base64_decode(s: &str) -> Vec<u8> {
+    let value = |c: u8| match c {
+        b'A'..=b'Z' => c - b'A',
+        b'a'..=b'z' => c - b'a' + 26,
+        b'0'..=b'9' => c - b'0' + 52,
+        b'+' => 62,
+        _ => 63,
+    };
+    let s: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
+    let mut out = Vec::with_capacity(s.len() * 3 / 4);
+    for chunk in s.chunks(4) {
+        let n = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |n, (i, &c)| n | (value(c) as u32) << (18 - 6 * i));
+        out.extend_from_slice(&n.to_be_bytes()[1..chunk.len()]);
+    }
+    out
+}
+
+/// Regression (Sponza's decimated LOD): a mesh wound the other way from its neighbours shows
+/// the room the backs of its faces, and photons land on them from that side. Records whose
+/// gathers met such faces counted as enclosed — never used, placed again at every finer grid
+/// level, their pixels gathered on the spot every frame. The example room with its walls and
+/// block wound the other way must place the records and read the light of the room as it
+/// is: no sample gathered on the spot, about as many records, the same indirect light
+/// within 3 % RMS (measured: 0 samples, the same 232 records, the same image; with every
+/// back face counted, frame 0 made 2 096 records, gathered 1 410 samples on the spot and
+/// was 12 % apart).
+#[test]
+fn faces_wound_the_other_way_are_lit_surfaces_not_an_inside() {
+    let dir = tempdir();
+    let src = root().join("examples/room/room.gltf");
+    let mut g: serde_json::Value = serde_json::from_slice(&std::fs::read(&src).unwrap()).unwrap();
+    let uri = g["buffers"][0]["uri"].as_str().unwrap().to_string();
+    let (head, data) = uri.split_once(',').unwrap();
+    let mut bin = base64_decode(data);
+    // Every static mesh but the lamp (its emission has a side): swap two indices a triangle.
+    for mesh in ["walls", "left_wall", "right_wall", "block"] {
+        let m = g["meshes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|m| m["name"] == mesh)
+            .unwrap();
+        let a = &g["accessors"][m["primitives"][0]["indices"].as_u64().unwrap() as usize];
+        assert_eq!(a["componentType"], 5125);
+        let v = &g["bufferViews"][a["bufferView"].as_u64().unwrap() as usize];
+        let start = v["byteOffset"].as_u64().unwrap_or(0) as usize
+            + a["byteOffset"].as_u64().unwrap_or(0) as usize;
+        for t in 0..a["count"].as_u64().unwrap() as usize / 3 {
+            let (i, j) = (start + 12 * t + 4, start + 12 * t + 8);
+            for k in 0..4 {
+                bin.swap(i + k, j + k);
+            }
+        }
+    }
+    g["buffers"][0]["uri"] = format!("{head},{}", super::scenes::base64_encode(&bin)).into();
+    std::fs::write(dir.path().join("room.gltf"), g.to_string()).unwrap();
+    let job = |path: &std::path::Path| {
+        job_from_json(
+            path,
+            r#"{"scene":[{"path":"room.gltf"}],"camera":{"position":[0,1.5,6.5],"look_at":[0,1.3,0],"yfov_deg":38},
+            "resolution":[64,48],"frames":{"start":0,"end":48},"render":{"samples_per_pixel":4},
+            "method":{"name":"anchors","preset":"draft"}}"#,
+        )
+        .unwrap()
+    };
+    let wound = super::anchors::render_sequence(&job(&dir.path().join("job.json")), 0..2);
+    let room = super::anchors::render_sequence(&job(&example_job()), 0..2);
+    for ((iw, sw), (ir, sr)) in wound.iter().zip(&room) {
+        let e = rms_error_pct(iw, ir, Aov::Indirect);
+        eprintln!(
+            "frame {}: wound the other way {} caches, {} uncached samples; the room {} caches, \
+             {} uncached; indirect {e:.2} % apart",
+            sw.frame,
+            sw.counts.caches,
+            sw.counts.uncached_samples,
+            sr.counts.caches,
+            sr.counts.uncached_samples
+        );
+        assert_eq!(
+            sw.counts.uncached_samples, 0,
+            "samples gathered on the spot"
+        );
+        assert!(
+            (sw.counts.caches as f64) < 1.1 * sr.counts.caches as f64,
+            "records placed again and again"
+        );
+        assert!(e < 3.0, "the indirect light differs by {e:.2} %");
+    }
+}
