@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Mutation check for the anchor method: applies each deliberate breakage kept in
-# scripts/mutations/NAME.patch to the source, builds the tests, runs the tests that are meant
-# to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
+# Mutation check for the anchor method and the cache's density rules: applies each deliberate
+# breakage kept in scripts/mutations/NAME.patch to the source, builds the tests, runs the
+# tests that are meant to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
 # restored after each one, also on interrupt.
 #
 #   scripts/mutations.sh                 every mutation
@@ -20,8 +20,12 @@ declare -A TESTS=(
   [d-max-4x]="anchor_faults anchors::"
   [no-shadow-ray-reuse-check]="anchor_faults anchors::"
   [inverted-importance]="anchor_faults anchors::"
+  [no-sample-records]="density::"
+  [weber-never-removes]="density::"
+  [lit-back-faces-enclosed]="density::"
 )
-ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance)
+ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
+  no-sample-records weber-never-removes lit-back-faces-enclosed)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
