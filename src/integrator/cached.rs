@@ -32,6 +32,7 @@ use crate::geom::Motion;
 use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
+use crate::sampling::{Sampler, Stream};
 use crate::visibility::Visibility;
 use crate::visibility::depth::{CpuDepthMaps, DepthMaps, DepthQuery};
 use serde::{Deserialize, Serialize};
@@ -573,60 +574,73 @@ impl CachedPixel {
 /// found by the shading's own choices ([`CachedPixel::shading_point`],
 /// [`CachedPixel::reuses_last`]) without shading: the cache places records for those no
 /// record covers ([`IrradianceCache::place`]), so that the shading rarely has to gather on
-/// the spot. In pixel order.
+/// the spot. In pixel order. Only pixels whose centre's surface differs from a neighbouring
+/// centre's (another prim, a normal turned by more than the shading's 0.999) have their
+/// samples traced: inside a surface every sample reads the cache at its pixel centre. A
+/// feature smaller than a pixel that no centre sees is missed, and its samples gather on
+/// the spot when shaded.
 pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
-    let rows = super::render_pixel_rows(ctx, spp, &LookupPoints, 0..ctx.height);
-    rows.into_iter().flat_map(|(_, row)| row.points).collect()
-}
-
-/// The probe of [`lookup_points`].
-struct LookupPoints;
-
-/// What [`LookupPoints`] finds in a row.
-#[derive(Default)]
-struct LookupRow {
-    counts: RenderCounts,
-    points: Vec<(u32, SurfacePoint)>,
-}
-
-impl AsMut<RenderCounts> for LookupRow {
-    fn as_mut(&mut self) -> &mut RenderCounts {
-        &mut self.counts
-    }
-}
-
-impl Shade for LookupPoints {
-    type Row = LookupRow;
-    type Pixel = CachedPixel;
-
-    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
-        CachedPixel::new(ctx, x, y, 0..0)
-    }
-
-    fn sample(
-        &self,
-        ctx: &FrameContext,
-        pixel: &mut CachedPixel,
-        row: &mut LookupRow,
-        hit: &CameraHit,
-        _: &mut Accumulator,
-    ) {
-        let sp = &hit.sp;
-        let key = CachedShading::key(ctx, sp);
-        if pixel.reuses_last(key, sp).is_some() {
-            return;
-        }
-        // The pixel centre needs nothing: the finest placement grid covered it.
-        if std::ptr::eq(pixel.shading_point(ctx, key, sp), sp) {
-            row.points.push((pixel.index, *sp));
-        }
-        let none = CacheValue {
-            irradiance: Vec3::ZERO,
-            anchor_id: 0,
-            reshot: 0.0,
+    use rayon::prelude::*;
+    let (w, h) = (ctx.width, ctx.height);
+    let centres: Vec<Option<(SurfaceKey, Vec3)>> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let (_, c) = trace_camera(
+                ctx.scene,
+                (x as f32 + 0.5) / w as f32,
+                (y as f32 + 0.5) / h as f32,
+            );
+            c.map(|c| (CachedShading::key(ctx, &c), c.ns))
+        })
+        .collect();
+    let uniform = |x: u32, y: u32| {
+        let Some((key, n)) = centres[(y * w + x) as usize] else {
+            return false;
         };
-        pixel.last = Some((key, sp.ns, none));
-    }
+        let near = [(-1, 0), (1, 0), (0, -1), (0, 1)];
+        near.iter().all(|&(dx, dy)| {
+            let (u, v) = (x as i64 + dx, y as i64 + dy);
+            if !(0..w as i64).contains(&u) || !(0..h as i64).contains(&v) {
+                return true;
+            }
+            matches!(centres[(v * w as i64 + u) as usize], Some((k, m)) if k == key && m.dot(n) > 0.999)
+        })
+    };
+    (0..h)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            let mut points = Vec::new();
+            for x in (0..w).filter(|&x| !uniform(x, y)) {
+                let mut pixel = CachedPixel::new(ctx, x, y, 0..0);
+                let sampler = Sampler::new(ctx.seed, ctx.frame, Stream::Camera, pixel.index);
+                for s in 0..spp {
+                    let [jx, jy] = sampler.get2(s, super::DIM_JITTER);
+                    let (_, sp) = trace_camera(
+                        ctx.scene,
+                        (x as f32 + jx) / w as f32,
+                        (y as f32 + jy) / h as f32,
+                    );
+                    let Some(sp) = sp else { continue };
+                    let key = CachedShading::key(ctx, &sp);
+                    if pixel.reuses_last(key, &sp).is_some() {
+                        continue;
+                    }
+                    // The pixel centre needs nothing: the finest placement grid covered it.
+                    if std::ptr::eq(pixel.shading_point(ctx, key, &sp), &sp) {
+                        points.push((pixel.index, sp));
+                    }
+                    let none = CacheValue {
+                        irradiance: Vec3::ZERO,
+                        anchor_id: 0,
+                        reshot: 0.0,
+                    };
+                    pixel.last = Some((key, sp.ns, none));
+                }
+            }
+            points
+        })
+        .collect()
 }
 
 impl CachedShading<'_> {
