@@ -32,7 +32,6 @@ use crate::geom::Motion;
 use crate::interaction::{Materials, SurfacePoint, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
-use crate::sampling::{Sampler, Stream};
 use crate::visibility::Visibility;
 use crate::visibility::depth::{CpuDepthMaps, DepthMaps, DepthQuery};
 use serde::{Deserialize, Serialize};
@@ -529,16 +528,26 @@ pub struct CachedPixel {
     plans: std::ops::Range<usize>,
 }
 
+/// Two surface points face the same way for the cache when their shading normals' cosine
+/// exceeds this: a pixel's samples share one cache read (and one bucketing) only then.
+const SAME_FACING: f32 = 0.999;
+
+/// What a pixel centre's camera ray hit: the surface point, or nothing.
+fn trace_centre(ctx: &FrameContext, x: u32, y: u32) -> Option<SurfacePoint> {
+    trace_camera(
+        ctx.scene,
+        (x as f32 + 0.5) / ctx.width as f32,
+        (y as f32 + 0.5) / ctx.height as f32,
+    )
+    .1
+}
+
 impl CachedPixel {
-    /// The pixel centre's surface (module doc of [`CachedShading`]), and `plans`.
-    fn new(ctx: &FrameContext, x: u32, y: u32, plans: std::ops::Range<usize>) -> Self {
-        let (_, centre) = trace_camera(
-            ctx.scene,
-            (x as f32 + 0.5) / ctx.width as f32,
-            (y as f32 + 0.5) / ctx.height as f32,
-        );
+    /// Pixel `index` with its centre's surface `centre` (module doc of [`CachedShading`]),
+    /// and `plans`.
+    fn new(index: u32, centre: Option<SurfacePoint>, plans: std::ops::Range<usize>) -> Self {
         CachedPixel {
-            index: y * ctx.width + x,
+            index,
             centre,
             last: None,
             bucketed: None,
@@ -555,7 +564,7 @@ impl CachedPixel {
         sp: &'p SurfacePoint,
     ) -> &'p SurfacePoint {
         match &self.centre {
-            Some(c) if CachedShading::key(ctx, c) == key && c.ns.dot(sp.ns) > 0.999 => c,
+            Some(c) if CachedShading::key(ctx, c) == key && c.ns.dot(sp.ns) > SAME_FACING => c,
             _ => sp,
         }
     }
@@ -564,7 +573,7 @@ impl CachedPixel {
     /// read serves it: the same prim, facing the same way.
     fn reuses_last(&self, key: SurfaceKey, sp: &SurfacePoint) -> Option<CacheValue> {
         match self.last {
-            Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => Some(v),
+            Some((k, n, v)) if k == key && n.dot(sp.ns) > SAME_FACING => Some(v),
             _ => None,
         }
     }
@@ -574,37 +583,33 @@ impl CachedPixel {
 /// found by the shading's own choices ([`CachedPixel::shading_point`],
 /// [`CachedPixel::reuses_last`]) without shading: the cache places records for those no
 /// record covers ([`IrradianceCache::place`]), so that the shading rarely has to gather on
-/// the spot. In pixel order. Only pixels whose centre's surface differs from a neighbouring
-/// centre's (another prim, a normal turned by more than the shading's 0.999) have their
-/// samples traced: inside a surface every sample reads the cache at its pixel centre. A
-/// feature smaller than a pixel that no centre sees is missed, and its samples gather on
-/// the spot when shaded.
+/// the spot. In pixel order. Only pixels whose centre sees another surface than a
+/// neighbouring centre (another prim, a normal turned past [`SAME_FACING`], or nothing
+/// beside something) have their samples traced: inside a surface every sample reads the
+/// cache at its pixel centre, and inside the empty background none reads it. A feature
+/// smaller than a pixel that no centre sees is missed, and its samples gather on the spot
+/// when shaded.
 pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
     use rayon::prelude::*;
     let (w, h) = (ctx.width, ctx.height);
-    let centres: Vec<Option<(SurfaceKey, Vec3)>> = (0..w * h)
+    let centres: Vec<Option<SurfacePoint>> = (0..w * h)
         .into_par_iter()
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let (_, c) = trace_camera(
-                ctx.scene,
-                (x as f32 + 0.5) / w as f32,
-                (y as f32 + 0.5) / h as f32,
-            );
-            c.map(|c| (CachedShading::key(ctx, &c), c.ns))
-        })
+        .map(|i| trace_centre(ctx, i % w, i / w))
         .collect();
+    let alike = |a: &Option<SurfacePoint>, b: &Option<SurfacePoint>| match (a, b) {
+        (Some(a), Some(b)) => {
+            CachedShading::key(ctx, a) == CachedShading::key(ctx, b) && a.ns.dot(b.ns) > SAME_FACING
+        }
+        (None, None) => true,
+        _ => false,
+    };
     let uniform = |x: u32, y: u32| {
-        let Some((key, n)) = centres[(y * w + x) as usize] else {
-            return false;
-        };
-        let near = [(-1, 0), (1, 0), (0, -1), (0, 1)];
-        near.iter().all(|&(dx, dy)| {
+        let c = &centres[(y * w + x) as usize];
+        [(-1, 0), (1, 0), (0, -1), (0, 1)].iter().all(|&(dx, dy)| {
             let (u, v) = (x as i64 + dx, y as i64 + dy);
-            if !(0..w as i64).contains(&u) || !(0..h as i64).contains(&v) {
-                return true;
-            }
-            matches!(centres[(v * w as i64 + u) as usize], Some((k, m)) if k == key && m.dot(n) > 0.999)
+            !(0..w as i64).contains(&u)
+                || !(0..h as i64).contains(&v)
+                || alike(c, &centres[(v * w as i64 + u) as usize])
         })
     };
     (0..h)
@@ -612,23 +617,20 @@ pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
         .flat_map_iter(|y| {
             let mut points = Vec::new();
             for x in (0..w).filter(|&x| !uniform(x, y)) {
-                let mut pixel = CachedPixel::new(ctx, x, y, 0..0);
-                let sampler = Sampler::new(ctx.seed, ctx.frame, Stream::Camera, pixel.index);
+                let index = y * w + x;
+                let mut pixel = CachedPixel::new(index, centres[index as usize], 0..0);
+                let sampler = super::pixel_sampler(ctx, x, y);
                 for s in 0..spp {
-                    let [jx, jy] = sampler.get2(s, super::DIM_JITTER);
-                    let (_, sp) = trace_camera(
-                        ctx.scene,
-                        (x as f32 + jx) / w as f32,
-                        (y as f32 + jy) / h as f32,
-                    );
-                    let Some(sp) = sp else { continue };
+                    let Some(sp) = super::camera_sample(ctx, &sampler, x, y, s).1 else {
+                        continue;
+                    };
                     let key = CachedShading::key(ctx, &sp);
                     if pixel.reuses_last(key, &sp).is_some() {
                         continue;
                     }
                     // The pixel centre needs nothing: the finest placement grid covered it.
                     if std::ptr::eq(pixel.shading_point(ctx, key, &sp), &sp) {
-                        points.push((pixel.index, sp));
+                        points.push((index, sp));
                     }
                     let none = CacheValue {
                         irradiance: Vec3::ZERO,
@@ -723,7 +725,7 @@ impl Shade for CachedShading<'_> {
             BucketPass::Shade(Some(band)) => band.of_pixel(y * ctx.width + x),
             _ => 0..0,
         };
-        CachedPixel::new(ctx, x, y, plans)
+        CachedPixel::new(y * ctx.width + x, trace_centre(ctx, x, y), plans)
     }
 
     fn sample(
@@ -767,7 +769,7 @@ impl Shade for CachedShading<'_> {
             GlossyPath::Rays => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
             GlossyPath::Bucket => {
                 let b = match pixel.bucketed {
-                    Some((k, n, v)) if k == key && n.dot(sp.ns) > 0.999 => v,
+                    Some((k, n, v)) if k == key && n.dot(sp.ns) > SAME_FACING => v,
                     _ => {
                         let planned = (!pixel.plans.is_empty()).then(|| {
                             pixel.plans.start += 1;
@@ -839,7 +841,7 @@ impl CachedShading<'_> {
             return;
         }
         let key = Self::key(ctx, sp);
-        if matches!(pixel.bucketed, Some((k, n, _)) if k == key && n.dot(sp.ns) > 0.999) {
+        if matches!(pixel.bucketed, Some((k, n, _)) if k == key && n.dot(sp.ns) > SAME_FACING) {
             return;
         }
         let at = pixel.shading_point(ctx, key, sp);

@@ -281,6 +281,28 @@ pub trait Shade: Sync {
     );
 }
 
+/// The camera stream of pixel (x, y) in this frame.
+pub fn pixel_sampler(ctx: &FrameContext, x: u32, y: u32) -> Sampler {
+    Sampler::new(ctx.seed, ctx.frame, Stream::Camera, y * ctx.width + x)
+}
+
+/// Camera sample `s` of pixel (x, y), jittered over the pixel from its stream `sampler`
+/// ([`pixel_sampler`]): the ray's direction and what it hit.
+pub fn camera_sample(
+    ctx: &FrameContext,
+    sampler: &Sampler,
+    x: u32,
+    y: u32,
+    s: u32,
+) -> (Vec3, Option<SurfacePoint>) {
+    let [jx, jy] = sampler.get2(s, DIM_JITTER);
+    trace_camera(
+        ctx.scene,
+        (x as f32 + jx) / ctx.width as f32,
+        (y as f32 + jy) / ctx.height as f32,
+    )
+}
+
 /// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
 /// parallel, the image independent of the thread count. Returns the image and each row's
 /// state.
@@ -304,18 +326,13 @@ pub fn render_pixel_rows<S: Shade>(
     method: &S,
     rows: std::ops::Range<u32>,
 ) -> Vec<(Vec<Pixel>, S::Row)> {
-    let (w, h) = (ctx.width, ctx.height);
+    let w = ctx.width;
     film::shade_rows(w, rows, |x, y, row: &mut S::Row| {
-        let sampler = Sampler::new(ctx.seed, ctx.frame, Stream::Camera, y * w + x);
+        let sampler = pixel_sampler(ctx, x, y);
         let mut acc = Accumulator::default();
         let mut pixel = method.begin_pixel(ctx, x, y);
         for s in 0..spp {
-            let [jx, jy] = sampler.get2(s, DIM_JITTER);
-            let (d, sp) = trace_camera(
-                ctx.scene,
-                (x as f32 + jx) / w as f32,
-                (y as f32 + jy) / h as f32,
-            );
+            let (d, sp) = camera_sample(ctx, &sampler, x, y, s);
             row.as_mut().camera_rays += 1;
             let Some(sp) = sp else {
                 continue;

@@ -68,7 +68,8 @@ fn pull_back(method: &str, weber: f32, last: i32) -> Vec<(FrameImage, FrameStats
 /// §4.3's third rule: after the camera pulls back, pixels read from more than N = 6 records
 /// lose the records whose Weber fraction is lowest, down to six each. The rule removes a
 /// share of the records and leaves the indirect light within 2 % RMS of the same frames
-/// with every record kept (measured: see the output); with the rule off nothing is removed.
+/// with every record kept (measured: 7–8 retired over frames 0–3, 242 records against 249 at
+/// frame 3, at most 0.03 % apart, both methods); with the rule off nothing is removed.
 #[test]
 fn the_weber_rule_thins_crowded_records_and_keeps_the_image() {
     for method in ["anchors", "brute-force"] {
