@@ -127,7 +127,11 @@ impl KdTree {
         loop {
             let n = self.nodes[at];
             if n.axis != LEAF {
-                at = if point[n.axis as usize] < n.split { n.a } else { n.b } as usize;
+                at = if point[n.axis as usize] < n.split {
+                    n.a
+                } else {
+                    n.b
+                } as usize;
                 continue;
             }
             let l = n.a as usize;
@@ -267,8 +271,7 @@ impl KdTree {
                 let (points, items) = (&self.points[at..at + len], &self.items[at..at + len]);
                 for (&q, &item) in points.iter().zip(items) {
                     let d2 = (q - p).length_squared();
-                    if d2 > r2 || (best.len() == k && (d2, item) >= best[k - 1]) || !accept(item)
-                    {
+                    if d2 > r2 || (best.len() == k && (d2, item) >= best[k - 1]) || !accept(item) {
                         continue;
                     }
                     let pos = best.partition_point(|&(d, it)| (d, it) < (d2, item));

@@ -162,7 +162,8 @@ pub fn update(
     });
 
     let t = Instant::now();
-    st.anchors_reestimated = reestimate_anchors(set, pm, ap.anchor_k(k));
+    let (count, changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
+    st.anchors_reestimated = count;
     relink_photons(set, pm);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
@@ -193,7 +194,7 @@ pub fn update(
         importance: importons.as_ref(),
     };
 
-    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &flags, cp, timings);
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &flags, &changed, cp, timings);
 
     place_records(ctx, &att, set, cache, cp, samples, timings);
 
@@ -237,7 +238,11 @@ pub fn relight(
     if albedo {
         refresh_albedo(ctx, set);
     }
-    st.anchors_reestimated = reestimate_anchors(set, pm, ap.anchor_k(k));
+    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
+    st.anchors_reestimated = count;
+    if albedo {
+        changed.fill(true);
+    }
     relink_photons(set, pm);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
@@ -255,7 +260,7 @@ pub fn relight(
         .iter()
         .map(|r| StrataBits::new(r.strata.len()))
         .collect();
-    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, cp, timings);
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, &changed, cp, timings);
 
     let refs = anchor_references(set, cache);
     st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
@@ -299,8 +304,10 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet) {
 /// were estimated. The photons follow the same paths wherever nothing moved, so an anchor
 /// whose last estimate reached no photon that changed (gone, new or different) would get
 /// the same photons and the same value: it keeps it, and only the others are estimated
-/// again (the lazy recomputation the paper's §6 points to).
-fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> u64 {
+/// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated
+/// and, per anchor, whether its L_i may differ from the last frame's (estimated again, or a
+/// free slot that a new anchor may fill).
+fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (u64, Vec<bool>) {
     let q = set.quantizer;
     let changed = pm.changed_since(&set.previous_photons);
     let changed_tree = (!changed.is_empty()).then(|| {
@@ -327,16 +334,18 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> u
             (!untouched).then(|| pm.irradiance_and_radius(x, a.normal(), anchor_k))
         })
         .collect();
+    let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
     let mut count = 0;
     for (i, e) in fresh.into_iter().enumerate() {
         if let Some((e, r2)) = e {
             let id = AnchorId(i as u32);
             set.anchor_mut(id).set_irradiance(e);
             set.set_reach(id, r2);
+            changed[i] = true;
             count += 1;
         }
     }
-    count
+    (count, changed)
 }
 
 /// Keeps this frame's photon paths for the next frame's comparison, and links each anchor's
@@ -387,13 +396,16 @@ fn flag_strata(
 /// Re-traces the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode
 /// 2): per record, the strata re-traced and their hits.
 /// Re-traces the strata `flags` marks and those [`reshoot`] adds, then updates the records
-/// from the new hits ([`update_records`]); the timings of both, and the rays traced.
+/// from the new hits and the anchors `changed` marks ([`update_records`]); the timings of
+/// both, and the rays traced.
+#[allow(clippy::too_many_arguments)] // the frame, its anchors and cache, and what changed
 fn reshoot_and_update(
     ctx: &FrameContext,
     att: &Attacher,
     set: &mut AnchorSet,
     cache: &mut IrradianceCache,
     flags: &[StrataBits],
+    changed: &[bool],
     cp: &CacheParams,
     timings: &mut GatherTimings,
 ) -> u64 {
@@ -403,7 +415,7 @@ fn reshoot_and_update(
     let rays = todo.iter().map(|l| l.len() as u64).sum();
     timings.rays += rays;
     let t = Instant::now();
-    update_records(att, set, cache, &todo, hits, cp, ctx.frame);
+    update_records(att, set, cache, &todo, hits, changed, cp, ctx.frame);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
     rays
 }
@@ -439,13 +451,17 @@ fn reshoot(
 }
 
 /// Re-makes every existing record from its strata: the re-shot ones resolved anew, the
-/// others reading their anchors' current L_i.
+/// others reading their anchors' current L_i. A record with no stratum re-shot whose anchors
+/// all keep their L_i (`changed`, by anchor index, says which were estimated again) would
+/// come out the same, and is kept as it is.
+#[allow(clippy::too_many_arguments)] // the anchors, the cache and this frame's changes to both
 fn update_records(
     att: &Attacher,
     set: &mut AnchorSet,
     cache: &mut IrradianceCache,
     todo: &[Vec<u32>],
     hits: Vec<Vec<GatherHit>>,
+    changed: &[bool],
     cp: &CacheParams,
     frame: i32,
 ) {
@@ -464,6 +480,16 @@ fn update_records(
         .zip(resolved)
         .zip(todo)
         .map(|((r, (new_strata, new_rad)), list)| {
+            let same = list.is_empty()
+                && r.strata.iter().all(|s| {
+                    s.link()
+                        .is_none_or(|a| !changed.get(a.index()).copied().unwrap_or(true))
+                });
+            if same {
+                let mut kept = r.clone();
+                kept.reshot = 0.0;
+                return kept;
+            }
             let mut strata = r.strata.clone();
             let mut rad = strata_radiance(set, &strata);
             for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
@@ -548,23 +574,22 @@ fn reuse_histogram(refs: &[u32]) -> [u64; 5] {
     h
 }
 
-/// The anchor whose strata carry most of a record's irradiance (luminance).
+/// The anchor whose strata carry most of a record's irradiance (luminance). Each anchor's
+/// strata are summed in stratum order (a stable sort by anchor keeps it).
 fn dominant(strata: &[Stratum], rad: &[Vec3]) -> Option<AnchorId> {
-    let mut sums: Vec<(AnchorId, f32)> = Vec::new();
-    for (s, r) in strata.iter().zip(rad) {
-        if let Some(a) = s.link() {
-            let l = luminance(*r);
-            match sums.iter_mut().find(|(id, _)| *id == a) {
-                Some(e) => e.1 += l,
-                None => sums.push((a, l)),
-            }
-        }
-    }
-    // Ties go to the lower id, so the choice does not depend on the strata's order.
+    let mut links: Vec<(AnchorId, f32)> = strata
+        .iter()
+        .zip(rad)
+        .filter_map(|(s, r)| s.link().map(|a| (a, luminance(*r))))
+        .collect();
+    links.sort_by_key(|&(a, _)| a);
+    // Ties go to the lower id (the first run), so the choice does not depend on the
+    // strata's order.
     let mut best: (Option<AnchorId>, f32) = (None, f32::MIN);
-    for &(a, l) in &sums {
-        if l > best.1 || (l == best.1 && best.0.is_none_or(|b| a < b)) {
-            best = (Some(a), l);
+    for run in links.chunk_by(|x, y| x.0 == y.0) {
+        let l = run.iter().fold(0.0, |sum, &(_, l)| sum + l);
+        if l > best.1 {
+            best = (Some(run[0].0), l);
         }
     }
     best.0
