@@ -401,6 +401,8 @@ pub struct Pass {
     pub frames: usize,
     pub seconds: f64,
     pub gather_rays: u64,
+    /// The last frame rendered when a newer change stopped the pass before the range's end.
+    pub interrupted_after: Option<i32>,
 }
 
 /// The render side of a watch: resources and the state each frame left.
@@ -415,7 +417,11 @@ pub struct Renderer {
 
 impl Renderer {
     /// Renders and writes every frame of `new`'s range under `rule` (`None`: the first
-    /// render). `previous` is the job the resources were made for.
+    /// render). `previous` is the job the resources were made for. After each frame but the
+    /// last, `newer` says whether a newer change is waiting: the pass then stops, and the
+    /// states of the frames it did not reach are dropped (they belong to the scene before
+    /// this change; the next pass makes those frames from a neighbour's state).
+    #[allow(clippy::too_many_arguments)] // the scenes, the rule and how to report
     pub fn pass(
         &mut self,
         previous: Option<&Job>,
@@ -424,6 +430,7 @@ impl Renderer {
         materials: bool,
         preview: bool,
         quiet: bool,
+        newer: &mut dyn FnMut() -> bool,
     ) -> Result<Pass> {
         let (job, scene) = (&new.job, &new.scene);
         crate::output::check_output_dir(&job.out_dir)?;
@@ -505,6 +512,11 @@ impl Renderer {
             }
             self.states.insert(frame, state.clone());
             carried = Some(state);
+            if frame < job.frames.end && newer() {
+                self.states.retain(|&f, _| f <= frame || f > job.frames.end);
+                pass.interrupted_after = Some(frame);
+                break;
+            }
         }
         // States of frames no longer in the range are kept: the range may come back.
         if fresh && pass.frames > 0 {
@@ -642,6 +654,11 @@ pub fn run(opts: &Options) -> Result<()> {
                             let rule = changes.as_ref().map(|c| c.rule);
                             let materials = changes.as_ref().is_some_and(|c| c.materials);
                             let previous = current.as_ref().map(|c| &c.job);
+                            let files = &watched.files;
+                            let mut newer = || {
+                                reload |= rx.try_iter().any(|b| relevant(&b, files));
+                                reload
+                            };
                             match renderer.pass(
                                 previous,
                                 &new,
@@ -649,6 +666,7 @@ pub fn run(opts: &Options) -> Result<()> {
                                 materials,
                                 opts.preview,
                                 opts.quiet,
+                                &mut newer,
                             ) {
                                 Ok(p) => log_pass(&new.job, changes.as_ref(), &p, &renderer),
                                 Err(e) => {
@@ -683,29 +701,37 @@ pub fn run(opts: &Options) -> Result<()> {
                 )));
             }
         }
+        if reload {
+            continue; // a change came during the pass, which stopped for it
+        }
         // Wait for a change to one of the files; drain what else came meanwhile.
         let Ok(first) = rx.recv() else {
             return Err(Error::Render("the file watcher stopped".into()));
         };
-        let mut batches = vec![first];
-        batches.extend(rx.try_iter());
-        for b in batches {
-            match b {
-                Ok(events) => {
-                    reload |= events.iter().any(|ev| {
-                        changes_content(&ev.event.kind)
-                            && ev.event.paths.iter().any(|p| {
-                                watched.files.contains(p) || watched.files.contains(&normalize(p))
-                            })
-                    });
-                }
-                Err(errors) => {
-                    for e in errors {
-                        eprintln!("anchorage: watch: warning: file watcher: {e}");
-                    }
-                    reload = true;
-                }
+        reload = relevant(&first, &watched.files);
+        for b in rx.try_iter() {
+            reload |= relevant(&b, &watched.files);
+        }
+    }
+}
+
+/// Whether a batch of the watcher's events changed one of `files` (errors count as a
+/// change, and are reported).
+fn relevant(batch: &DebounceEventResult, files: &BTreeSet<PathBuf>) -> bool {
+    match batch {
+        Ok(events) => events.iter().any(|ev| {
+            changes_content(&ev.event.kind)
+                && ev
+                    .event
+                    .paths
+                    .iter()
+                    .any(|p| files.contains(p) || files.contains(&normalize(p)))
+        }),
+        Err(errors) => {
+            for e in errors {
+                eprintln!("anchorage: watch: warning: file watcher: {e}");
             }
+            true
         }
     }
 }
@@ -722,9 +748,13 @@ fn log_pass(job: &Job, changes: Option<&Changes>, p: &Pass, r: &Renderer) {
         .filter(|&c| c > 0.0 && p.frames > 0)
         .map(|c| format!("{:.0} %", 100.0 * p.seconds / p.frames as f64 / c))
         .unwrap_or_else(|| "-".into());
+    let interrupted = p
+        .interrupted_after
+        .map(|f| format!("; interrupted after frame {f} by a newer change"))
+        .unwrap_or_default();
     eprintln!(
         "anchorage: watch: {what} -> rule {} ({}): frames {}-{}, {:.2} s, {} gather rays, {share} \
-         of a cold render",
+         of a cold render{interrupted}",
         rule.name(),
         rule.explain(job.method.name),
         job.frames.start,

@@ -343,12 +343,12 @@ mod tests {
                 Vec3::new((h & 1023) as f32, (h >> 10 & 1023) as f32, 500.0) * 0.01
             };
             let (r, k) = (0.3 + (q % 5) as f32 * 0.5, 1 + (q % 4) as usize);
-            let odd = |i: u32| i % 3 != 0;
-            let a = inc.nearest(at, r, k, odd);
-            let b = bal.nearest(at, r, k, odd);
+            let kept = |i: u32| !i.is_multiple_of(3);
+            let a = inc.nearest(at, r, k, kept);
+            let b = bal.nearest(at, r, k, kept);
             let mut brute: Vec<(f32, u32)> = pts
                 .iter()
-                .filter(|p| odd(p.1))
+                .filter(|p| kept(p.1))
                 .map(|&(p, i)| ((p - at).length_squared(), i))
                 .filter(|x| x.0 <= r * r)
                 .collect();

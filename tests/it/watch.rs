@@ -21,8 +21,14 @@ struct Watch {
 
 impl Watch {
     fn start(job: &Path) -> Watch {
+        Watch::spawn(job, &["-q"])
+    }
+
+    /// `anchorage watch` with `args` besides the job and two threads.
+    fn spawn(job: &Path, args: &[&str]) -> Watch {
         let mut child = Command::new(env!("CARGO_BIN_EXE_anchorage"))
-            .args(["watch", "-q", "--threads", "2"])
+            .args(["watch", "--threads", "2"])
+            .args(args)
             .arg(job)
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -355,4 +361,73 @@ fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
             "room.0001.json"
         ]
     );
+}
+
+/// Frame `f`'s EXR of `out`.
+fn frame(out: &Path, f: i32) -> PathBuf {
+    out.join(format!("room.{f:04}.exr"))
+}
+
+#[test]
+fn a_newer_edit_stops_the_pass_in_progress_and_every_frame_shows_the_last_edit() {
+    let dir = tempdir();
+    let gltf = dir.path().join("room.gltf");
+    std::fs::copy(root().join("examples/room/room.gltf"), &gltf).unwrap();
+    let job = dir.path().join("job.json");
+    std::fs::write(
+        &job,
+        r#"{"scene":[{"path":"room.gltf"}],"resolution":[96,72],"frames":{"start":0,"end":11},
+            "output":{"directory":"out","name":"room"},"seed":1,
+            "render":{"samples_per_pixel":2},"method":{"name":"anchors","preset":"draft"}}"#,
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    // Without -q: the log has a line per frame.
+    let mut w = Watch::spawn(&job, &[]);
+    let first = w.render_line();
+    assert!(first.contains("first render"), "{first}");
+
+    // The lamp doubled; as soon as the pass for it has written its first frame, the lamp
+    // is turned down to a quarter: that pass stops, and the next renders the whole range.
+    let lamp = |g: &mut Value, strength: f64| {
+        g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+            strength.into();
+    };
+    lamp(&mut g, 34.0);
+    save_atomic(&gltf, &g);
+    w.wait_for(60, |l| l.contains("watch: frame 0:"));
+    lamp(&mut g, 4.25);
+    save_atomic(&gltf, &g);
+    let stopped = w.render_line();
+    assert!(
+        stopped.contains("interrupted after frame"),
+        "the pass in progress ran to its end: {stopped}"
+    );
+    let last = w.render_line();
+    assert!(
+        last.contains("-> rule relight") && !last.contains("interrupted"),
+        "{last}"
+    );
+
+    // Every frame as a cold render of the final scene shows it.
+    let cold_out = dir.path().join("cold");
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args(["render", "-q", "--threads", "2"])
+        .arg(&job)
+        .arg("--out")
+        .arg(&cold_out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in 0..=11 {
+        let (watched, cold) = (
+            mean(&channel(&frame(&out, f), "G")),
+            mean(&channel(&frame(&cold_out, f), "G")),
+        );
+        assert!(
+            rel(watched, cold) < 0.05,
+            "frame {f}: watched {watched} against a cold render's {cold}"
+        );
+    }
 }
