@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use super::common::{root, tempdir};
+use super::common::{TempDir, root, tempdir};
 
 /// A running `anchorage watch` and the lines it has logged.
 struct Watch {
@@ -169,6 +169,26 @@ fn cold_render(job: &Path, out: &Path) -> PathBuf {
     out.join("room.0000.exr")
 }
 
+/// A temporary copy of the example room's glTF and a draft `anchors` job over it (output
+/// `out/room.####`): the directory, the glTF and the job.
+fn room_copy(resolution: [u32; 2], last_frame: i32) -> (TempDir, PathBuf, PathBuf) {
+    let dir = tempdir();
+    let gltf = dir.path().join("room.gltf");
+    std::fs::copy(root().join("examples/room/room.gltf"), &gltf).unwrap();
+    let job = dir.path().join("job.json");
+    let text = serde_json::json!({
+        "scene": [{"path": "room.gltf"}],
+        "resolution": resolution,
+        "frames": {"start": 0, "end": last_frame},
+        "output": {"directory": "out", "name": "room"},
+        "seed": 1,
+        "render": {"samples_per_pixel": 2},
+        "method": {"name": "anchors", "preset": "draft"}
+    });
+    std::fs::write(&job, serde_json::to_vec(&text).unwrap()).unwrap();
+    (dir, gltf, job)
+}
+
 /// Relative difference of two means.
 fn rel(a: f64, b: f64) -> f64 {
     (a - b).abs() / b.abs().max(1e-12)
@@ -176,17 +196,7 @@ fn rel(a: f64, b: f64) -> f64 {
 
 #[test]
 fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
-    let dir = tempdir();
-    let gltf = dir.path().join("room.gltf");
-    std::fs::copy(root().join("examples/room/room.gltf"), &gltf).unwrap();
-    let job = dir.path().join("job.json");
-    std::fs::write(
-        &job,
-        r#"{"scene":[{"path":"room.gltf"}],"resolution":[64,48],"frames":{"start":0,"end":1},
-            "output":{"directory":"out","name":"room"},"seed":1,
-            "render":{"samples_per_pixel":2},"method":{"name":"anchors","preset":"draft"}}"#,
-    )
-    .unwrap();
+    let (dir, gltf, job) = room_copy([64, 48], 1);
     let out = dir.path().join("out");
     let exr0 = out.join("room.0000.exr");
     let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
@@ -370,17 +380,7 @@ fn frame(out: &Path, f: i32) -> PathBuf {
 
 #[test]
 fn a_newer_edit_stops_the_pass_in_progress_and_every_frame_shows_the_last_edit() {
-    let dir = tempdir();
-    let gltf = dir.path().join("room.gltf");
-    std::fs::copy(root().join("examples/room/room.gltf"), &gltf).unwrap();
-    let job = dir.path().join("job.json");
-    std::fs::write(
-        &job,
-        r#"{"scene":[{"path":"room.gltf"}],"resolution":[96,72],"frames":{"start":0,"end":11},
-            "output":{"directory":"out","name":"room"},"seed":1,
-            "render":{"samples_per_pixel":2},"method":{"name":"anchors","preset":"draft"}}"#,
-    )
-    .unwrap();
+    let (dir, gltf, job) = room_copy([96, 72], 11);
     let out = dir.path().join("out");
     let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
     // Without -q: the log has a line per frame.
