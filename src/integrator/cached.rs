@@ -225,8 +225,11 @@ pub fn render_in_bands(
     };
     let mut wall = 0.0;
     let mut planning = 0.0;
-    let bands = band_pixels
-        .filter(|_| shading.anchors.is_some() && params.glossy.mode == GlossyMode::Bucketing);
+    let bands = band_pixels.filter(|_| {
+        shading.anchors.is_some()
+            && params.glossy.mode == GlossyMode::Bucketing
+            && params.glossy.may_bucket(ctx.materials.materials)
+    });
     let rows = if let Some(band_pixels) = bands {
         let band_rows = (band_pixels / ctx.width.max(1)).max(1);
         let mut rows = Vec::with_capacity(ctx.height as usize);
@@ -454,6 +457,24 @@ pub enum GlossyMode {
     Bucketing,
     /// Importance-sampled reflection rays.
     Importance,
+}
+
+impl GlossyParams {
+    /// Whether some surface of `materials` may be moderately glossy, so bucketed (§5.1): its
+    /// roughness (the factor, times a texture's value in [0, 1] where there is one, clamped
+    /// as the BRDF clamps it) may lie at or above `specular_max_roughness` and below
+    /// `max_roughness`. Where none may, shading needs no planning pass.
+    pub fn may_bucket(&self, materials: &[crate::scene::Material]) -> bool {
+        materials.iter().any(|m| {
+            let hi = m.roughness.clamp(crate::bsdf::MIN_ROUGHNESS, 1.0);
+            let lo = if m.metallic_roughness_texture.is_some() {
+                crate::bsdf::MIN_ROUGHNESS
+            } else {
+                hi
+            };
+            lo < self.max_roughness && hi >= self.specular_max_roughness
+        })
+    }
 }
 
 impl Default for GlossyParams {
@@ -947,5 +968,44 @@ impl CachedShading<'_> {
             sum += f * l * (ns.dot(wi) / pdf);
         }
         sum / n as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::GlossyParams;
+    use crate::scene::Material;
+    use crate::scene::material::{TextureRef, UvTransform, Wrap};
+
+    #[test]
+    fn only_materials_that_can_be_moderately_glossy_need_bucketing() {
+        let g = GlossyParams::default();
+        let (lo, hi) = (g.specular_max_roughness, g.max_roughness);
+        let with = |roughness: f32, textured: bool| Material {
+            roughness,
+            metallic_roughness_texture: textured.then_some(TextureRef {
+                texture: 0,
+                wrap: [Wrap::Repeat; 2],
+                transform: UvTransform::IDENTITY,
+            }),
+            ..Material::default()
+        };
+        let may = |m: Material| g.may_bucket(&[Material::default(), m]);
+        assert!(
+            !g.may_bucket(&[Material::default()]),
+            "glTF's default is fully rough"
+        );
+        assert!(may(with(0.5 * (lo + hi), false)));
+        assert!(may(with(lo, false)));
+        assert!(!may(with(hi, false)), "as rough as the cache takes");
+        assert!(
+            !may(with(0.5 * lo, false)),
+            "highly glossy: reflection rays"
+        );
+        // A texture scales the factor by [0, 1]: a rough factor may become glossy, a highly
+        // glossy one stays so.
+        assert!(may(with(1.0, true)));
+        assert!(!may(with(0.5 * lo, true)));
+        assert!(!g.may_bucket(&[]));
     }
 }
