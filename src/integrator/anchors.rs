@@ -142,8 +142,9 @@ fn resolve(
 }
 
 /// One frame of the anchor method's cache work (Pseudocode 2): everything up to shading,
-/// phase by phase.
-#[allow(clippy::too_many_arguments)] // the frame, its state and photons, and placement's points
+/// phase by phase. With `albedo` (a material edit in watch mode), every anchor first reads
+/// its albedo again ([`refresh_albedo`]), and no record is kept unchanged.
+#[allow(clippy::too_many_arguments)] // the frame, its state and photons, placement's points, a material edit
 pub fn update(
     ctx: &FrameContext,
     cache: &mut IrradianceCache,
@@ -152,6 +153,7 @@ pub fn update(
     params: &GiParams,
     vis: &dyn Visibility,
     samples: &[(u32, SurfacePoint)],
+    albedo: bool,
     timings: &mut GatherTimings,
 ) -> Result<AnchorStats, visibility::Error> {
     let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
@@ -162,8 +164,14 @@ pub fn update(
     });
 
     let t = Instant::now();
-    let (count, changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
+    if albedo {
+        refresh_albedo(ctx, set);
+    }
+    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
     st.anchors_reestimated = count;
+    if albedo {
+        changed.fill(true); // every anchor may reflect another colour
+    }
     relink_photons(set, pm);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 

@@ -190,11 +190,6 @@ pub fn render_in_bands(
         ));
     } else if method == CachedMethod::Anchors {
         let samples = lookup_points(ctx, spp);
-        if refresh.albedo
-            && let Some(set) = state.anchors.as_mut()
-        {
-            super::anchors::refresh_albedo(ctx, set);
-        }
         st.anchors = Some(super::anchors::update(
             ctx,
             cache,
@@ -203,6 +198,7 @@ pub fn render_in_bands(
             params,
             visibility,
             &samples,
+            refresh.albedo,
             &mut gt,
         )?);
     } else {
