@@ -9,8 +9,7 @@
 //! weighted by how the hit's shading normal sees it (Veach 1997, §5.3), as the path tracer
 //! and the direct light do; Russian roulette by albedo decides whether it bounces on.
 //!
-//! The kd-tree is kiddo's immutable tree: a maintained crate doing exactly the k-nearest
-//! query the estimate needs.
+//! The kd-tree is our own ([`knn`]): a bounded k-nearest query that does not allocate.
 //!
 //! Every look-up is bounded: no photon farther than [`PhotonMap::max_radius`] from the
 //! query point counts (DESIGN.md, Numerics), so light sealed behind closed geometry cannot
@@ -23,14 +22,12 @@
 //! disc reaches past the end of its surface; the estimate divides by the part of the disc
 //! that lies on it, which the photons on the other surface delimit ([`SurfaceClip`]).
 
+pub mod knn;
 pub mod precomputed;
 
 use std::f32::consts::PI;
-use std::num::NonZero;
 
 use glam::{Vec2, Vec3};
-use kiddo::SquaredEuclidean;
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use serde::{Deserialize, Serialize};
 
 use crate::accel::{interpolate, offset_ray_origin};
@@ -80,7 +77,7 @@ pub struct PhotonMap {
     /// Where each emitted photon's path starts in `photons` (one more entry than paths):
     /// path `i` stored `photons[path_start[i]..path_start[i + 1]]`.
     pub path_start: Vec<u32>,
-    tree: Option<ImmutableKdTree<f32, u32, 3, 32>>,
+    tree: knn::PointTree,
     /// Photons emitted (the divisor of every photon's power).
     pub emitted: u32,
     /// Total flux emitted by all lights (luminance-weighted sum is what selection uses).
@@ -294,7 +291,7 @@ impl PhotonMap {
         let mut map = PhotonMap {
             photons: Vec::new(),
             path_start: Vec::new(),
-            tree: None,
+            tree: knn::PointTree::default(),
             emitted: count,
             emitted_power,
             max_radius: max_radius * frame.static_radius(),
@@ -340,10 +337,8 @@ impl PhotonMap {
             map.path_start.extend(ends.iter().map(|e| base + e));
             map.photons.extend(photons);
         }
-        if !map.photons.is_empty() {
-            let pts: Vec<[f32; 3]> = map.photons.iter().map(|p| p.position.to_array()).collect();
-            map.tree = Some(ImmutableKdTree::new_from_slice(&pts));
-        }
+        let pts: Vec<Vec3> = map.photons.iter().map(|p| p.position).collect();
+        map.tree = knn::PointTree::new(&pts);
         map
     }
 
@@ -360,20 +355,24 @@ impl PhotonMap {
     /// estimate divides by the part of it on the query's surface ([`SurfaceClip`]).
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let r2_max = self.max_radius * self.max_radius;
-        let Some(tree) = &self.tree else {
-            return (Vec3::ZERO, r2_max);
-        };
         let k = k.max(1);
-        let found = tree.nearest_n_within::<SquaredEuclidean>(
-            &x.to_array(),
-            r2_max,
-            NonZero::new(k).expect("k >= 1"),
-            false,
-        );
+        self.tree
+            .nearest_within(x, r2_max, k, |found| self.estimate(x, n, k, r2_max, found))
+    }
+
+    /// The estimate at `x` from the `found` photons (the k nearest within `r2_max`).
+    fn estimate(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        k: usize,
+        r2_max: f32,
+        found: &[knn::Neighbour],
+    ) -> (Vec3, f32) {
         let r2 = if found.len() < k {
             r2_max
         } else {
-            found.iter().map(|nb| nb.distance).fold(0.0, f32::max)
+            found.iter().map(|nb| nb.0).fold(0.0, f32::max)
         };
         if !(r2 > 0.0) {
             return (Vec3::ZERO, r2_max);
@@ -386,7 +385,7 @@ impl PhotonMap {
         let thickness = DISC_THICKNESS * r;
         let on_disc =
             |p: &Photon| p.normal.dot(n) > 0.5 && (p.position - x).dot(n).abs() <= thickness;
-        let photons = || found.iter().map(|nb| &self.photons[nb.item as usize]);
+        let photons = || found.iter().map(|nb| &self.photons[nb.1 as usize]);
         let clip = SurfaceClip::new(x, n, r, photons().filter(|p| !on_disc(p)));
         if clip.lines.is_empty() {
             let sum: Vec3 = photons().filter(|p| on_disc(p)).map(|p| p.power).sum();
@@ -436,11 +435,8 @@ impl PhotonMap {
 
     /// Index of the photon nearest to `x` within [`PhotonMap::max_radius`], if any.
     pub fn nearest(&self, x: Vec3) -> Option<usize> {
-        let t = self.tree.as_ref()?;
         let r2_max = self.max_radius * self.max_radius;
-        // kiddo's single-neighbour query keeps no result list (the n-nearest one allocates).
-        let nb = t.nearest_one::<SquaredEuclidean>(&x.to_array());
-        (nb.distance <= r2_max).then_some(nb.item as usize)
+        self.tree.nearest_one(x, r2_max).map(|nb| nb.1 as usize)
     }
 
     /// Total flux stored in the map.
