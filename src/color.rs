@@ -12,6 +12,14 @@ pub fn srgb_to_linear(c: f32) -> f32 {
     }
 }
 
+/// [`srgb_to_linear`] of an 8-bit code value `c` / 255, from a table (anchors decode their
+/// albedo at every stratum that reads them).
+pub fn srgb8_to_linear(c: u8) -> f32 {
+    static TABLE: std::sync::LazyLock<[f32; 256]> =
+        std::sync::LazyLock::new(|| std::array::from_fn(|c| srgb_to_linear(c as f32 / 255.0)));
+    TABLE[c as usize]
+}
+
 /// Rec. 709 luminance of a linear RGB colour.
 pub fn luminance(c: Vec3) -> f32 {
     c.dot(Vec3::new(0.2126, 0.7152, 0.0722))

@@ -8,7 +8,9 @@
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use crate::color::{oct_decode, oct_encode, rgbe_decode, rgbe_encode, srgb_encode, srgb_to_linear};
+use crate::color::{
+    oct_decode, oct_encode, rgbe_decode, rgbe_encode, srgb_encode, srgb8_to_linear,
+};
 
 /// A compact anchor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -105,9 +107,9 @@ impl Anchor {
 
     pub fn albedo(&self) -> Vec3 {
         Vec3::new(
-            srgb_to_linear(self.albedo[0] as f32 / 255.0),
-            srgb_to_linear(self.albedo[1] as f32 / 255.0),
-            srgb_to_linear(self.albedo[2] as f32 / 255.0),
+            srgb8_to_linear(self.albedo[0]),
+            srgb8_to_linear(self.albedo[1]),
+            srgb8_to_linear(self.albedo[2]),
         )
     }
 

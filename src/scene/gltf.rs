@@ -1330,15 +1330,13 @@ fn decode_texture(data: &gltf::image::Data, srgb: bool) -> Option<Texture> {
             data.pixels[i] as f32 / 255.0
         }
     };
-    // 256-entry table for 8-bit sRGB decoding.
-    let lut: Vec<f32> = (0..256).map(|c| srgb_to_linear(c as f32 / 255.0)).collect();
     let decode = |c: f32| {
         if !srgb {
             c
         } else if wide {
             srgb_to_linear(c)
         } else {
-            lut[(c * 255.0).round() as usize]
+            crate::color::srgb8_to_linear((c * 255.0).round() as u8)
         }
     };
     let texels = (0..count)
