@@ -49,14 +49,31 @@ impl RecordGrid {
         self.levels.insert(level);
     }
 
-    /// Records whose sphere may contain `x`, in index order.
-    pub(super) fn candidates(&self, x: Vec3, out: &mut Vec<u32>) {
-        out.clear();
-        for &l in &self.levels {
-            if let Some(c) = self.cells.get(&self.cell(l, x)) {
-                out.extend_from_slice(c);
-            }
+    /// Calls `f` with the records whose sphere may contain `x` (level by level, each
+    /// level's in index order; a record sits at one level), in a per-thread buffer that is
+    /// not freed between calls.
+    pub(super) fn with_candidates<R>(&self, x: Vec3, f: impl FnOnce(&[u32]) -> R) -> R {
+        thread_local! {
+            static BUFFER: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
         }
-        out.sort_unstable();
+        let fill = |out: &mut Vec<u32>| {
+            out.clear();
+            for &l in &self.levels {
+                if let Some(c) = self.cells.get(&self.cell(l, x)) {
+                    out.extend_from_slice(c);
+                }
+            }
+        };
+        BUFFER.with(|cell| match cell.try_borrow_mut() {
+            Ok(mut out) => {
+                fill(&mut out);
+                f(&out)
+            }
+            Err(_) => {
+                let mut out = Vec::new();
+                fill(&mut out);
+                f(&out)
+            }
+        })
     }
 }

@@ -282,30 +282,36 @@ impl IrradianceCache {
             a <= REACH * self.grid.error * 1.0001,
             "lookup beyond the grid's reach"
         );
+        // The valid records' weights and values, summed in index order (whatever order the
+        // grid's cells hand them out in): sorting the few valid ones is cheaper than sorting
+        // every candidate.
+        self.grid.with_candidates(x, |idx| {
+            for &i in idx {
+                let r = &self.records[i as usize];
+                let w = Self::weight(r, x, n);
+                if w <= 1.0 / a {
+                    continue;
+                }
+                parts.push(Contribution {
+                    record: i,
+                    weight: w,
+                    value: r.extrapolate(x, n).max(Vec3::ZERO),
+                });
+            }
+        });
+        parts.sort_unstable_by_key(|c| c.record);
         let mut sum = Vec3::ZERO;
         let mut wsum = 0.0f32;
         let mut reshot = 0.0f32;
         let mut dominant = (0.0f32, 0);
-        let mut idx = Vec::new();
-        self.grid.candidates(x, &mut idx);
-        for i in idx {
-            let r = &self.records[i as usize];
-            let w = Self::weight(r, x, n);
-            if w <= 1.0 / a {
-                continue;
-            }
-            let value = r.extrapolate(x, n).max(Vec3::ZERO);
-            sum += w * value;
+        for c in parts.iter() {
+            let w = c.weight;
+            sum += w * c.value;
             wsum += w;
-            reshot += w * r.reshot;
+            reshot += w * self.records[c.record as usize].reshot;
             if w > dominant.0 {
-                dominant = (w, i);
+                dominant = (w, c.record);
             }
-            parts.push(Contribution {
-                record: i,
-                weight: w,
-                value,
-            });
         }
         (wsum > 0.0).then(|| Interpolated {
             irradiance: sum / wsum,
@@ -316,15 +322,17 @@ impl IrradianceCache {
 
     /// The records valid at (x, n) (weight above 1/a), in index order.
     pub fn valid_records(&self, x: Vec3, n: Vec3, a: f32) -> Vec<u32> {
-        let mut idx = Vec::new();
         if self.records.is_empty() {
-            return idx;
+            return Vec::new();
         }
-        self.grid.candidates(x, &mut idx);
-        idx.retain(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a);
-        idx.sort_unstable();
-        idx.dedup();
-        idx
+        let mut valid: Vec<u32> = self.grid.with_candidates(x, |idx| {
+            idx.iter()
+                .copied()
+                .filter(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
+                .collect()
+        });
+        valid.sort_unstable();
+        valid
     }
 
     /// True if some record is valid at (x, n).
@@ -332,10 +340,10 @@ impl IrradianceCache {
         if self.records.is_empty() {
             return false;
         }
-        let mut idx = Vec::new();
-        self.grid.candidates(x, &mut idx);
-        idx.iter()
-            .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
+        self.grid.with_candidates(x, |idx| {
+            idx.iter()
+                .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
+        })
     }
 
     /// Re-gathers every record (brute force: every frame, every stratum).
