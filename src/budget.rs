@@ -115,6 +115,11 @@ impl Limit {
 
     /// Parses `--memory-limit`: bytes, or a number with K, M, G or T (powers of 1024).
     pub fn parse(s: &str) -> Result<Limit> {
+        Limit::parse_option("--memory-limit", s)
+    }
+
+    /// Parses a size given to the command-line option `option`, as [`Limit::parse`].
+    pub fn parse_option(option: &str, s: &str) -> Result<Limit> {
         let t = s.trim();
         let (num, unit) = match t.char_indices().find(|(_, c)| c.is_ascii_alphabetic()) {
             Some((i, _)) => (&t[..i], t[i..].to_ascii_uppercase()),
@@ -132,7 +137,7 @@ impl Limit {
         let bytes = v * scale as f64;
         if scale == 0 || !(bytes >= 1.0 && bytes < 2f64.powi(63)) {
             return Err(Error::input(
-                "--memory-limit",
+                option,
                 s,
                 "expected a size such as 8G, 512M or 1073741824",
             ));

@@ -170,6 +170,11 @@ enum Command {
         /// Only the one line per re-render, no line per frame.
         #[arg(long, short)]
         quiet: bool,
+        /// Most memory the frame states kept between re-renders may use, e.g. 4G or 512M
+        /// (default: half the render's memory limit, 40 % of the machine's). Frames whose
+        /// state does not fit are re-made from the frame before them
+        #[arg(long)]
+        state_memory: Option<String>,
     },
 }
 
@@ -410,8 +415,15 @@ fn run(cli: Cli) -> Result<(), Error> {
             threads,
             preview,
             quiet,
+            state_memory,
         } => {
             set_threads(threads)?;
+            let state_memory = state_memory
+                .as_deref()
+                .map(|s| {
+                    anchorage::budget::Limit::parse_option("--state-memory", s).map(|l| l.bytes)
+                })
+                .transpose()?;
             let overrides = Overrides {
                 frames: frames.as_deref().map(parse_frames).transpose()?,
                 out_dir: out,
@@ -424,6 +436,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 overrides,
                 preview,
                 quiet,
+                state_memory,
             })
         }
         Command::Validate { job } => {

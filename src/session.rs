@@ -26,6 +26,11 @@ impl FrameState {
         postcard::to_stdvec(self).expect("frame state serialises: no map keys, no I/O")
     }
 
+    /// Bytes the state holds on the heap (an estimate from its lengths).
+    pub fn heap_bytes(&self) -> usize {
+        self.cache.heap_bytes() + self.anchors.as_ref().map_or(0, AnchorSet::heap_bytes)
+    }
+
     /// Checks a state read from disk for a render whose records have `strata` strata each:
     /// every index it holds points into it, so that rendering from it cannot go out of
     /// bounds.

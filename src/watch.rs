@@ -13,8 +13,9 @@
 //!   materials changed: every record, stratum link and anchor is kept and only L_i is
 //!   re-estimated from the new photons (§3.3.2); anchors read their albedo again after a
 //!   material edit (they store it, §3, and reflect albedo × L_i / π). The state is the one
-//!   the same frame left, so no visibility detection is needed: the only gather rays are
-//!   those of strata whose ray hit a dynamic prim (no anchor holds their light).
+//!   the same frame left, so no visibility detection is needed and no gather ray is traced
+//!   for the cache: strata whose ray hit a dynamic prim (no anchor holds their light) are
+//!   estimated again at the hits that frame's render kept.
 //! - **dynamic** — a dynamic prim's geometry or animation changed: the state is kept and the
 //!   visibility machinery (§3.2, Pseudocode 2) re-shoots the strata that see a dynamic prim
 //!   now or saw one in the state's frame, as from one frame to the next.
@@ -64,6 +65,9 @@ pub struct Options {
     pub preview: bool,
     /// No per-frame lines (the one line per re-render stays).
     pub quiet: bool,
+    /// Most bytes the frame states kept between re-renders may hold (default: half of
+    /// [`crate::budget::Limit::of_machine`]).
+    pub state_memory: Option<u64>,
 }
 
 /// How a re-render treats the state, from cheapest to dearest (see the module doc).
@@ -403,19 +407,39 @@ pub struct Pass {
     pub gather_rays: u64,
     /// The last frame rendered when a newer change stopped the pass before the range's end.
     pub interrupted_after: Option<i32>,
+    /// Frames whose state was not kept: the states kept already held the state budget.
+    pub states_not_kept: usize,
 }
 
 /// The render side of a watch: resources and the state each frame left.
-#[derive(Default)]
 pub struct Renderer {
     resources: Option<Resources>,
-    /// The state each frame of the range left after its last render.
-    states: BTreeMap<i32, FrameState>,
+    /// The state each frame of the range left after its last render, while they fit in
+    /// `state_budget` bytes (in frame order: a frame whose state does not fit keeps none,
+    /// and is made from the frame before it, as `render` makes it).
+    states: BTreeMap<i32, Kept>,
+    state_budget: u64,
     /// Seconds per frame of the last pass with a fresh state.
     pub cold_per_frame: Option<f64>,
 }
 
+/// A frame's state and its size ([`FrameState::heap_bytes`]).
+struct Kept {
+    state: FrameState,
+    bytes: u64,
+}
+
 impl Renderer {
+    /// A renderer that keeps frame states up to `state_budget` bytes.
+    pub fn new(state_budget: u64) -> Renderer {
+        Renderer {
+            resources: None,
+            states: BTreeMap::new(),
+            state_budget,
+            cold_per_frame: None,
+        }
+    }
+
     /// Renders and writes every frame of `new`'s range under `rule` (`None`: the first
     /// render). `previous` is the job the resources were made for. After each frame but the
     /// last, `newer` says whether a newer change is waiting: the pass then stops, and the
@@ -456,12 +480,12 @@ impl Renderer {
             let t0 = Instant::now();
             let (mut state, refresh) = if fresh {
                 (carried.take().unwrap_or_default(), Refresh::default())
-            } else if let Some(s) = self.states.get(&frame) {
+            } else if let Some(kept) = self.states.get(&frame) {
                 let refresh = Refresh {
                     relight_only: rule == Some(Rule::Relight),
                     albedo: materials,
                 };
-                (s.clone(), refresh)
+                (kept.state.clone(), refresh)
             } else if let Some(s) = carried.take() {
                 (s, Refresh::default())
             } else {
@@ -471,7 +495,7 @@ impl Renderer {
                     .range(..frame)
                     .next_back()
                     .or_else(|| self.states.range(frame..).next())
-                    .map(|(_, s)| s.clone());
+                    .map(|(_, kept)| kept.state.clone());
                 let albedo = materials && near.is_some();
                 (
                     near.unwrap_or_default(),
@@ -510,7 +534,10 @@ impl Renderer {
                     written.exr.display()
                 );
             }
-            self.states.insert(frame, state.clone());
+            let range = job.frames.start..=job.frames.end;
+            if !keep(&mut self.states, self.state_budget, frame, &state, range) {
+                pass.states_not_kept += 1;
+            }
             carried = Some(state);
             if frame < job.frames.end && newer() {
                 self.states.retain(|&f, _| f <= frame || f > job.frames.end);
@@ -518,12 +545,48 @@ impl Renderer {
                 break;
             }
         }
-        // States of frames no longer in the range are kept: the range may come back.
+        // States of frames no longer in the range are kept: the range may come back (they
+        // count against the budget, and go first when the range's own do not fit).
         if fresh && pass.frames > 0 {
             self.cold_per_frame = Some(pass.seconds / pass.frames as f64);
         }
         Ok(pass)
     }
+}
+
+/// Keeps `state` as `frame`'s in `states` if it fits in `budget` bytes beside the states of
+/// the range's other frames (states of frames outside `range` make room first); returns
+/// whether it did. A frame whose state does not fit keeps none (an older one would belong
+/// to another scene).
+fn keep(
+    states: &mut BTreeMap<i32, Kept>,
+    budget: u64,
+    frame: i32,
+    state: &FrameState,
+    range: std::ops::RangeInclusive<i32>,
+) -> bool {
+    let bytes = state.heap_bytes() as u64;
+    states.remove(&frame);
+    let used = |states: &BTreeMap<i32, Kept>| states.values().map(|k| k.bytes).sum::<u64>();
+    while used(states) + bytes > budget {
+        match states.keys().copied().find(|f| !range.contains(f)) {
+            Some(f) => {
+                states.remove(&f);
+            }
+            None => break,
+        }
+    }
+    let fits = used(states) + bytes <= budget;
+    if fits {
+        states.insert(
+            frame,
+            Kept {
+                state: state.clone(),
+                bytes,
+            },
+        );
+    }
+    fits
 }
 
 /// `path` made absolute, its directory resolved (links, `..`) where it exists, so that it
@@ -627,7 +690,10 @@ pub fn run(opts: &Options) -> Result<()> {
     };
 
     let mut reporter = Reporter::default();
-    let mut renderer = Renderer::default();
+    let state_budget = opts
+        .state_memory
+        .unwrap_or_else(|| crate::budget::Limit::of_machine().map_or(u64::MAX, |l| l.bytes / 2));
+    let mut renderer = Renderer::new(state_budget);
     let mut current: Option<Loaded> = None;
     let mut reload = true;
     loop {
@@ -748,10 +814,16 @@ fn log_pass(job: &Job, changes: Option<&Changes>, p: &Pass, r: &Renderer) {
         .filter(|&c| c > 0.0 && p.frames > 0)
         .map(|c| format!("{:.0} %", 100.0 * p.seconds / p.frames as f64 / c))
         .unwrap_or_else(|| "-".into());
-    let interrupted = p
+    let mut interrupted = p
         .interrupted_after
         .map(|f| format!("; interrupted after frame {f} by a newer change"))
         .unwrap_or_default();
+    if p.states_not_kept > 0 {
+        interrupted += &format!(
+            "; the states of {} frame(s) not kept (over --state-memory)",
+            p.states_not_kept
+        );
+    }
     eprintln!(
         "anchorage: watch: {what} -> rule {} ({}): frames {}-{}, {:.2} s, {} gather rays, {share} \
          of a cold render{interrupted}",

@@ -61,6 +61,14 @@ fn widest_axis(points: impl Iterator<Item = Vec3>) -> usize {
 }
 
 impl KdTree {
+    /// Bytes the tree holds on the heap (watch mode bounds the states it keeps by this).
+    pub fn heap_bytes(&self) -> usize {
+        self.nodes.len() * size_of::<KdNode>()
+            + self.points.len() * size_of::<Vec3>()
+            + self.items.len() * size_of::<u32>()
+            + self.len.len()
+    }
+
     /// Checks a tree read from disk over `items` items: the root is node 0, every child comes
     /// after its parent (as [`KdTree::insert`] and [`KdTree::balanced`] build them, so that a
     /// search ends), axes are 0..3 or a leaf, buckets and items in range.

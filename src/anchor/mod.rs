@@ -202,6 +202,17 @@ impl AnchorSet {
         &mut self.anchors[id.index()]
     }
 
+    /// Bytes the set holds on the heap: anchors, their tree, photon links and the previous
+    /// frame's photons.
+    pub fn heap_bytes(&self) -> usize {
+        self.anchors.len() * BYTES_PER_ANCHOR
+            + self.free.len() * size_of::<u32>()
+            + self.tree.heap_bytes()
+            + self.photon_links.len() * size_of::<Option<AnchorId>>()
+            + self.previous_photons.photons.len() * size_of::<crate::photon::Photon>()
+            + self.previous_photons.path_start.len() * size_of::<u32>()
+    }
+
     pub fn live_count(&self) -> usize {
         self.anchors.len() - self.free.len()
     }

@@ -85,7 +85,19 @@ pub struct IrradianceCache {
     pub records: Vec<Record>,
     grid: RecordGrid,
     next_id: u32,
+    /// The hits of the strata whose rays met a dynamic prim in the frame the records were
+    /// last brought up to date for, by record id: no anchor holds their light, and watch
+    /// mode's relight of that same frame (nothing moved) estimates it there again instead
+    /// of tracing the rays anew. Neither serialised nor compared: a state without them
+    /// traces those rays and gets the same hits.
+    pub dynamic_hits: DynamicHits,
 }
+
+/// Bytes of the grid entries of one record: up to eight cells hold its index.
+const CELL_ENTRIES: usize = 8 * 4;
+
+/// [`IrradianceCache::dynamic_hits`]: per record id, (stratum, hit) pairs.
+pub type DynamicHits = rustc_hash::FxHashMap<u32, Vec<(u32, GatherHit)>>;
 
 impl PartialEq for IrradianceCache {
     fn eq(&self, other: &Self) -> bool {
@@ -129,6 +141,7 @@ impl<'de> Deserialize<'de> for IrradianceCache {
             records: data.records,
             grid: RecordGrid::default(),
             next_id: data.next_id,
+            dynamic_hits: DynamicHits::default(),
         };
         cache.grid.error = data.error;
         cache.rebuild_tree();
@@ -162,6 +175,23 @@ pub fn pixel_footprint(camera: &FrameCamera, x: Vec3, height: u32) -> f32 {
 }
 
 impl IrradianceCache {
+    /// Bytes the cache holds on the heap: records, their strata, and about eight grid cell
+    /// entries per record.
+    pub fn heap_bytes(&self) -> usize {
+        // Eight grid entries per record: `CELL_ENTRIES` bytes.
+        self.records.len() * (size_of::<Record>() + CELL_ENTRIES)
+            + self
+                .records
+                .iter()
+                .map(|r| r.strata.len() * size_of::<Stratum>())
+                .sum::<usize>()
+            + self
+                .dynamic_hits
+                .values()
+                .map(|h| h.len() * size_of::<(u32, GatherHit)>() + 32)
+                .sum::<usize>()
+    }
+
     pub fn len(&self) -> usize {
         self.records.len()
     }
@@ -509,6 +539,12 @@ impl IrradianceCache {
             .collect();
         timings.final_gathering += t0.elapsed().as_secs_f64();
         timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        for (i, h) in hits.iter().enumerate() {
+            self.keep_dynamic_hits(
+                first_id + i as u32,
+                h.iter().enumerate().map(|(s, g)| (s as u32, g)),
+            );
+        }
         let t1 = std::time::Instant::now();
         let footprints: Vec<f32> = points
             .iter()
@@ -535,6 +571,20 @@ impl IrradianceCache {
         timings.irradiance_estimation += t1.elapsed().as_secs_f64();
         for r in records {
             self.insert(r);
+        }
+    }
+
+    /// Adds the hits among `hits` (stratum, hit) that met a dynamic prim to
+    /// [`IrradianceCache::dynamic_hits`] for record `id`.
+    pub fn keep_dynamic_hits<'a>(
+        &mut self,
+        id: u32,
+        hits: impl Iterator<Item = (u32, &'a GatherHit)>,
+    ) {
+        for (s, g) in hits {
+            if g.flags() & HIT_DYNAMIC != 0 {
+                self.dynamic_hits.entry(id).or_default().push((s, *g));
+            }
         }
     }
 

@@ -202,7 +202,8 @@ pub fn update(
         importance: importons.as_ref(),
     };
 
-    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &flags, &changed, cp, timings);
+    st.rays_reshot =
+        reshoot_and_update(ctx, &att, set, cache, &flags, &changed, cp, false, timings);
 
     place_records(ctx, &att, set, cache, cp, samples, timings);
 
@@ -226,7 +227,9 @@ pub fn update(
 /// anchor reads its albedo again from the surface it lies on (a material edit changes the
 /// radiance an anchor reflects, albedo × L_i / π, and its reuse test). The only gather rays
 /// are those of strata that hit a dynamic prim: no anchor holds their light, so they are
-/// traced again (the same directions, so the same hits) and estimated from the photons.
+/// estimated from the photons again at the hits the frame's render kept
+/// ([`IrradianceCache::dynamic_hits`]; traced again — the same directions, so the same hits
+/// — only where a state came without them).
 pub fn relight(
     ctx: &FrameContext,
     cache: &mut IrradianceCache,
@@ -268,7 +271,7 @@ pub fn relight(
         .iter()
         .map(|r| StrataBits::new(r.strata.len()))
         .collect();
-    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, &changed, cp, timings);
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, &changed, cp, true, timings);
 
     let refs = anchor_references(set, cache);
     st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
@@ -403,9 +406,11 @@ fn flag_strata(
 
 /// Re-traces the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode
 /// 2): per record, the strata re-traced and their hits.
-/// Re-traces the strata `flags` marks and those [`reshoot`] adds, then updates the records
-/// from the new hits and the anchors `changed` marks ([`update_records`]); the timings of
-/// both, and the rays traced.
+/// Re-traces the strata `flags` marks and those [`reshoot`] adds (with `stored`, those the
+/// cache kept the hits of are not traced), then updates the records from the new hits and
+/// the anchors `changed` marks ([`update_records`]); the timings of both, and the rays
+/// traced. The hits that met a dynamic prim are kept in the cache
+/// ([`IrradianceCache::dynamic_hits`]).
 #[allow(clippy::too_many_arguments)] // the frame, its anchors and cache, and what changed
 fn reshoot_and_update(
     ctx: &FrameContext,
@@ -415,13 +420,20 @@ fn reshoot_and_update(
     flags: &[StrataBits],
     changed: &[bool],
     cp: &CacheParams,
+    stored: bool,
     timings: &mut GatherTimings,
 ) -> u64 {
     let t = Instant::now();
-    let (todo, hits) = reshoot(ctx.scene, cache, flags, cp);
+    let (todo, hits, rays) = reshoot(ctx.scene, cache, flags, cp, stored);
     timings.final_gathering += t.elapsed().as_secs_f64();
-    let rays = todo.iter().map(|l| l.len() as u64).sum();
     timings.rays += rays;
+    // The hits that met a dynamic prim, for a relight of this frame (placement adds those
+    // of new records).
+    cache.dynamic_hits.clear();
+    let ids: Vec<u32> = cache.records.iter().map(|r| r.id).collect();
+    for ((&id, list), h) in ids.iter().zip(&todo).zip(&hits) {
+        cache.keep_dynamic_hits(id, list.iter().copied().zip(h));
+    }
     let t = Instant::now();
     update_records(att, set, cache, &todo, hits, changed, cp, ctx.frame);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
@@ -433,7 +445,8 @@ fn reshoot(
     cache: &IrradianceCache,
     flags: &[StrataBits],
     cp: &CacheParams,
-) -> (Vec<Vec<u32>>, Vec<Vec<GatherHit>>) {
+    stored: bool,
+) -> (Vec<Vec<u32>>, Vec<Vec<GatherHit>>, u64) {
     let todo: Vec<Vec<u32>> = cache
         .records
         .iter()
@@ -444,18 +457,30 @@ fn reshoot(
                 .collect()
         })
         .collect();
+    let traced = std::sync::atomic::AtomicU64::new(0);
     let hits = cache
         .records
         .par_iter()
         .zip(&todo)
         .map(|(r, list)| {
             let sp = r.surface_point();
+            let kept = cache
+                .dynamic_hits
+                .get(&r.id)
+                .filter(|_| stored)
+                .map_or(&[][..], Vec::as_slice);
             list.iter()
-                .map(|&s| gather::trace_stratum(frame, &sp, r.id, cp, s))
+                .map(|&s| match kept.binary_search_by_key(&s, |&(t, _)| t) {
+                    Ok(i) => kept[i].1,
+                    Err(_) => {
+                        traced.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        gather::trace_stratum(frame, &sp, r.id, cp, s)
+                    }
+                })
                 .collect()
         })
         .collect();
-    (todo, hits)
+    (todo, hits, traced.into_inner())
 }
 
 /// Re-makes every existing record from its strata: the re-shot ones resolved anew, the

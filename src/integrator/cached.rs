@@ -329,6 +329,8 @@ fn prepare_brute_force(
     let radiance = |sp: &SurfacePoint| estimate.radiance(sp, m);
     let mut brute =
         |fp: &[f32], hits: Vec<Vec<GatherHit>>| gather::estimate_all(fp, hits, &radiance);
+    // Brute force re-gathers every stratum every frame: no hit is worth keeping.
+    cache.dynamic_hits.clear();
     cache.expire(ctx.frame, cp.max_age);
     cache.regather(ctx.scene, cp, ctx.frame, &mut brute, gt);
     cache.place(

@@ -210,8 +210,8 @@ fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
     let beauty0 = mean(&channel(&exr0, "G"));
     let ids0 = channel(&exr0, "anchor_id.V");
 
-    // A light: the lamp's emission doubled. Relight keeps every anchor link, traces only
-    // the strata on the dynamic cube, and matches a cold render of the edited room.
+    // A light: the lamp's emission doubled. Relight keeps every anchor link, traces no ray
+    // for the cache, and matches a cold render of the edited room.
     g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
         34.0.into();
     save_atomic(&gltf, &g);
@@ -220,8 +220,10 @@ fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
         line.contains(r#"light "lamp" (emissive material) emission -> rule relight"#),
         "{line}"
     );
+    // No gather ray for the cache: the strata that hit the cube read the hits the frame's
+    // render kept.
     let rays = cache_rays(&line, &out);
-    assert!(rays * 10 < cold_rays, "relight traced {rays} rays: {line}");
+    assert_eq!(rays, 0, "relight traced {rays} rays: {line}");
     let beauty1 = mean(&channel(&exr0, "G"));
     assert!(
         beauty1 > 1.8 * beauty0,
@@ -252,7 +254,7 @@ fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
         "{line}"
     );
     let rays = cache_rays(&line, &out);
-    assert!(rays * 10 < cold_rays, "relight traced {rays} rays: {line}");
+    assert_eq!(rays, 0, "relight traced {rays} rays: {line}");
     let cold = cold_render(&job, &dir.path().join("cold2"));
     for c in ["indirect.R", "indirect.G"] {
         let (ind, ind_cold) = (mean(&channel(&exr0, c)), mean(&channel(&cold, c)));
@@ -428,6 +430,50 @@ fn a_newer_edit_stops_the_pass_in_progress_and_every_frame_shows_the_last_edit()
         assert!(
             rel(watched, cold) < 0.05,
             "frame {f}: watched {watched} against a cold render's {cold}"
+        );
+    }
+}
+
+#[test]
+fn frame_states_beyond_the_state_memory_are_not_kept_and_their_frames_are_made_afresh() {
+    let (dir, gltf, job) = room_copy([64, 48], 2);
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    // 1 KiB holds no frame's state: every pass renders as `render` would.
+    let mut w = Watch::spawn(&job, &["-q", "--state-memory", "1K"]);
+    let first = w.render_line();
+    assert!(
+        first.contains("the states of 3 frame(s) not kept (over --state-memory)"),
+        "{first}"
+    );
+    let cold_rays = cache_rays(&first, &out);
+
+    g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+        34.0.into();
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(line.contains("-> rule relight"), "{line}");
+    assert!(line.contains("3 frame(s) not kept"), "{line}");
+    // No state to relight: frame 0 gathers every record again.
+    let rays = cache_rays(&line, &out);
+    assert!(
+        rays * 2 > cold_rays,
+        "a relight without states traced {rays} rays (cold {cold_rays}): {line}"
+    );
+    let cold_out = dir.path().join("cold");
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args(["render", "-q", "--threads", "2"])
+        .arg(&job)
+        .arg("--out")
+        .arg(&cold_out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in 0..=2 {
+        assert_eq!(
+            std::fs::read(frame(&out, f)).unwrap(),
+            std::fs::read(frame(&cold_out, f)).unwrap(),
+            "frame {f}: a watch with no states kept renders as `render` does"
         );
     }
 }
