@@ -440,8 +440,8 @@ impl Renderer {
         }
     }
 
-    /// Renders and writes every frame of `new`'s range under `rule` (`None`: the first
-    /// render). `previous` is the job the resources were made for. After each frame but the
+    /// Renders and writes every frame of `new`'s range from `from` on under `rule` (`None`:
+    /// the first render). `previous` is the job the resources were made for. After each frame but the
     /// last, `newer` says whether a newer change is waiting: the pass then stops, and the
     /// states of the frames it did not reach are dropped (they belong to the scene before
     /// this change; the next pass makes those frames from a neighbour's state).
@@ -452,6 +452,7 @@ impl Renderer {
         new: &Loaded,
         rule: Option<Rule>,
         materials: bool,
+        from: i32,
         preview: bool,
         quiet: bool,
         newer: &mut dyn FnMut() -> bool,
@@ -476,7 +477,7 @@ impl Renderer {
         let max_age = job.method.params().cache.max_age;
         let mut pass = Pass::default();
         let mut carried: Option<FrameState> = None;
-        for frame in job.frames.start..=job.frames.end {
+        for frame in from.max(job.frames.start)..=job.frames.end {
             let t0 = Instant::now();
             let (mut state, refresh) = if fresh {
                 (carried.take().unwrap_or_default(), Refresh::default())
@@ -695,6 +696,8 @@ pub fn run(opts: &Options) -> Result<()> {
         .unwrap_or_else(|| crate::budget::Limit::of_machine().map_or(u64::MAX, |l| l.bytes / 2));
     let mut renderer = Renderer::new(state_budget);
     let mut current: Option<Loaded> = None;
+    // A pass a newer change stopped: its changes and the first frame it did not render.
+    let mut unfinished: Option<(Option<Changes>, i32)> = None;
     let mut reload = true;
     loop {
         if reload {
@@ -706,7 +709,16 @@ pub fn run(opts: &Options) -> Result<()> {
                         files_of(&opts.job, Some(&new.job), Some(&new.scene)),
                         &mut watched,
                     );
-                    let changes = current.as_ref().map(|old| classify(old, &new));
+                    let mut changes = current.as_ref().map(|old| classify(old, &new));
+                    let mut from = new.job.frames.start;
+                    if let (Some(c), Some((stopped, next))) = (&changes, &unfinished)
+                        && c.what.is_empty()
+                    {
+                        // The save that stopped a pass changed nothing: the frames that pass
+                        // did not reach still show the scene before it.
+                        changes = stopped.clone();
+                        from = *next;
+                    }
                     match &changes {
                         Some(c) if c.what.is_empty() => {
                             eprintln!("anchorage: watch: saved without a change: no re-render");
@@ -730,14 +742,20 @@ pub fn run(opts: &Options) -> Result<()> {
                                 &new,
                                 rule,
                                 materials,
+                                from,
                                 opts.preview,
                                 opts.quiet,
                                 &mut newer,
                             ) {
-                                Ok(p) => log_pass(&new.job, changes.as_ref(), &p, &renderer),
+                                Ok(p) => {
+                                    log_pass(&new.job, changes.as_ref(), from, &p, &renderer);
+                                    unfinished =
+                                        p.interrupted_after.map(|f| (changes.clone(), f + 1));
+                                }
                                 Err(e) => {
                                     // The next change renders from scratch.
                                     renderer.resources = None;
+                                    unfinished = None;
                                     reporter.error(&e);
                                 }
                             }
@@ -804,7 +822,7 @@ fn relevant(batch: &DebounceEventResult, files: &BTreeSet<PathBuf>) -> bool {
 
 /// The one line per re-render: what changed, the rule, frames, seconds, gather rays and the
 /// time as a share of a cold render.
-fn log_pass(job: &Job, changes: Option<&Changes>, p: &Pass, r: &Renderer) {
+fn log_pass(job: &Job, changes: Option<&Changes>, from: i32, p: &Pass, r: &Renderer) {
     let (what, rule) = match changes {
         None => ("first render".to_string(), Rule::Rebuild),
         Some(c) => (c.what.join(", "), c.rule),
@@ -829,7 +847,7 @@ fn log_pass(job: &Job, changes: Option<&Changes>, p: &Pass, r: &Renderer) {
          of a cold render{interrupted}",
         rule.name(),
         rule.explain(job.method.name),
-        job.frames.start,
+        from.max(job.frames.start),
         job.frames.end,
         p.seconds,
         p.gather_rays,

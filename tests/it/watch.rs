@@ -477,3 +477,56 @@ fn frame_states_beyond_the_state_memory_are_not_kept_and_their_frames_are_made_a
         );
     }
 }
+
+#[test]
+fn a_save_without_a_change_that_stops_a_pass_renders_the_frames_it_did_not_reach() {
+    let (dir, gltf, job) = room_copy([96, 72], 11);
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut w = Watch::spawn(&job, &[]);
+    w.render_line();
+
+    // The lamp doubled, then the same file saved again while that pass renders: the second
+    // save stops the pass and changes nothing, and the frames the pass did not reach must
+    // still be rendered with the doubled lamp.
+    g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+        34.0.into();
+    save_atomic(&gltf, &g);
+    w.wait_for(60, |l| l.contains("watch: frame 0:"));
+    save_atomic(&gltf, &g);
+    let stopped = w.render_line();
+    let after: i32 = stopped
+        .split("interrupted after frame ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("the pass in progress ran to its end: {stopped}"))
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let rest = w.render_line();
+    assert!(
+        rest.contains(&format!("frames {}-11", after + 1)) && rest.contains("-> rule relight"),
+        "after a pass stopped at frame {after}: {rest}"
+    );
+
+    let cold_out = dir.path().join("cold");
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args(["render", "-q", "--threads", "2"])
+        .arg(&job)
+        .arg("--out")
+        .arg(&cold_out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in 0..=11 {
+        let (watched, cold) = (
+            mean(&channel(&frame(&out, f), "G")),
+            mean(&channel(&frame(&cold_out, f), "G")),
+        );
+        assert!(
+            rel(watched, cold) < 0.05,
+            "frame {f}: watched {watched} against a cold render's {cold}"
+        );
+    }
+}
