@@ -27,18 +27,10 @@ import tempfile
 import time
 
 import numpy as np
-import OpenEXR
+
+from exrtools import read, rms_pct
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def read(path, names):
-    ch = OpenEXR.File(path, separate_channels=True).parts[0].channels
-    return np.stack([ch[n].pixels.astype(np.float64) for n in names])
-
-
-def rms_pct(a, ref):
-    return 100.0 * float(np.sqrt(np.mean((a - ref) ** 2)) / max(np.mean(np.abs(ref)), 1e-12))
 
 
 def cycles_images(path):

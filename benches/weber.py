@@ -22,18 +22,10 @@ import sys
 import tempfile
 
 import numpy as np
-import OpenEXR
+
+from exrtools import read, rms_pct
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def channels(path, names):
-    parts = OpenEXR.File(path, separate_channels=True).parts[0].channels
-    return np.stack([parts[n].pixels.astype(np.float64) for n in names])
-
-
-def rms_pct(a, b):
-    return 100.0 * float(np.sqrt(np.mean((a - b) ** 2)) / max(np.mean(np.abs(b)), 1e-12))
 
 
 def main():
@@ -95,8 +87,8 @@ def main():
                 tot[label][0] += s["timings_s"]["cache_interpolation"]
                 tot[label][1] += s["timings_s"]["total"]
             ind = ["indirect.R", "indirect.G", "indirect.B"]
-            d_ind = rms_pct(channels(exr("on", f), ind), channels(exr("off", f), ind))
-            d_b = rms_pct(channels(exr("on", f), "RGB"), channels(exr("off", f), "RGB"))
+            d_ind = rms_pct(read(exr("on", f), ind), read(exr("off", f), ind))
+            d_b = rms_pct(read(exr("on", f), "RGB"), read(exr("off", f), "RGB"))
             diffs.append((d_ind, d_b))
             if f % args.every == 0 or f == frames[-1]:
                 print(

@@ -81,23 +81,12 @@ impl PointTree {
     /// index), as (squared distance, index).
     pub fn nearest_one(&self, x: Vec3, r2_max: f32) -> Option<Neighbour> {
         let mut best: Option<Neighbour> = None;
-        let mut bound = r2_max;
-        self.visit(
-            0,
-            self.points.len(),
-            x.to_array(),
-            &mut bound,
-            &mut |d2, i| {
-                let better = match best {
-                    None => true,
-                    Some(b) => (d2, i) < b,
-                };
-                if better {
-                    best = Some((d2, i));
-                }
-                Some(d2)
-            },
-        );
+        self.search(x, r2_max, |d2, i| {
+            if best.is_none_or(|b| (d2, i) < b) {
+                best = Some((d2, i));
+            }
+            Some(d2)
+        });
         best
     }
 
@@ -128,24 +117,24 @@ impl PointTree {
     fn collect(&self, x: Vec3, r2_max: f32, k: usize, buf: &mut Vec<Neighbour>) {
         buf.clear();
         let cap = 2 * k;
-        let mut bound = r2_max;
-        self.visit(
-            0,
-            self.points.len(),
-            x.to_array(),
-            &mut bound,
-            &mut |d2, i| {
-                buf.push((d2, i));
-                if buf.len() < cap {
-                    return None;
-                }
-                keep_nearest(buf, k);
-                Some(buf.iter().fold(0.0f32, |m, e| m.max(e.0)))
-            },
-        );
+        self.search(x, r2_max, |d2, i| {
+            buf.push((d2, i));
+            if buf.len() < cap {
+                return None;
+            }
+            keep_nearest(buf, k);
+            Some(buf.iter().fold(0.0f32, |m, e| m.max(e.0)))
+        });
         if buf.len() > k {
             keep_nearest(buf, k);
         }
+    }
+
+    /// Visits the points within `r2_max` of `x`: `found(d2, index)` may return a tighter
+    /// bound.
+    fn search<F: FnMut(f32, u32) -> Option<f32>>(&self, x: Vec3, r2_max: f32, mut found: F) {
+        let mut bound = r2_max;
+        self.visit(0, self.points.len(), x.to_array(), &mut bound, &mut found);
     }
 
     /// Visits the points of `lo..hi` within `bound` of `q`: `found(d2, index)` may return

@@ -158,15 +158,21 @@ fn save_in_place(path: &Path, g: &Value) {
 
 /// Renders frame 0 of `job` cold (a plain `render`) into `out`; returns the EXR.
 fn cold_render(job: &Path, out: &Path) -> PathBuf {
+    cold_frames(job, out, &["--frames", "0"]);
+    out.join("room.0000.exr")
+}
+
+/// Renders `job` cold (a plain `render`, with `args`) into `out`.
+fn cold_frames(job: &Path, out: &Path, args: &[&str]) {
     let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
-        .args(["render", "-q", "--threads", "2", "--frames", "0"])
+        .args(["render", "-q", "--threads", "2"])
+        .args(args)
         .arg(job)
         .arg("--out")
         .arg(out)
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    out.join("room.0000.exr")
 }
 
 /// A temporary copy of the example room's glTF and a draft `anchors` job over it (output
@@ -375,6 +381,22 @@ fn watch_re_renders_each_edit_under_its_rule_and_survives_a_truncated_file() {
     );
 }
 
+/// Frames 0..=`last` of `out` have the mean green of a cold render of `job` (into `cold`)
+/// within 5 %.
+fn assert_frames_match_a_cold_render(job: &Path, out: &Path, cold: &Path, last: i32) {
+    cold_frames(job, cold, &[]);
+    for f in 0..=last {
+        let (watched, cold) = (
+            mean(&channel(&frame(out, f), "G")),
+            mean(&channel(&frame(cold, f), "G")),
+        );
+        assert!(
+            rel(watched, cold) < 0.05,
+            "frame {f}: watched {watched} against a cold render's {cold}"
+        );
+    }
+}
+
 /// Frame `f`'s EXR of `out`.
 fn frame(out: &Path, f: i32) -> PathBuf {
     out.join(format!("room.{f:04}.exr"))
@@ -413,25 +435,7 @@ fn a_newer_edit_stops_the_pass_in_progress_and_every_frame_shows_the_last_edit()
     );
 
     // Every frame as a cold render of the final scene shows it.
-    let cold_out = dir.path().join("cold");
-    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
-        .args(["render", "-q", "--threads", "2"])
-        .arg(&job)
-        .arg("--out")
-        .arg(&cold_out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    for f in 0..=11 {
-        let (watched, cold) = (
-            mean(&channel(&frame(&out, f), "G")),
-            mean(&channel(&frame(&cold_out, f), "G")),
-        );
-        assert!(
-            rel(watched, cold) < 0.05,
-            "frame {f}: watched {watched} against a cold render's {cold}"
-        );
-    }
+    assert_frames_match_a_cold_render(&job, &out, &dir.path().join("cold"), 11);
 }
 
 #[test]
@@ -461,14 +465,7 @@ fn frame_states_beyond_the_state_memory_are_not_kept_and_their_frames_are_made_a
         "a relight without states traced {rays} rays (cold {cold_rays}): {line}"
     );
     let cold_out = dir.path().join("cold");
-    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
-        .args(["render", "-q", "--threads", "2"])
-        .arg(&job)
-        .arg("--out")
-        .arg(&cold_out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    cold_frames(&job, &cold_out, &[]);
     for f in 0..=2 {
         assert_eq!(
             std::fs::read(frame(&out, f)).unwrap(),
@@ -510,23 +507,5 @@ fn a_save_without_a_change_that_stops_a_pass_renders_the_frames_it_did_not_reach
         "after a pass stopped at frame {after}: {rest}"
     );
 
-    let cold_out = dir.path().join("cold");
-    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
-        .args(["render", "-q", "--threads", "2"])
-        .arg(&job)
-        .arg("--out")
-        .arg(&cold_out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    for f in 0..=11 {
-        let (watched, cold) = (
-            mean(&channel(&frame(&out, f), "G")),
-            mean(&channel(&frame(&cold_out, f), "G")),
-        );
-        assert!(
-            rel(watched, cold) < 0.05,
-            "frame {f}: watched {watched} against a cold render's {cold}"
-        );
-    }
+    assert_frames_match_a_cold_render(&job, &out, &dir.path().join("cold"), 11);
 }
