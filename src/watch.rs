@@ -460,8 +460,12 @@ impl Renderer {
         let (job, scene) = (&new.job, &new.scene);
         crate::output::check_output_dir(&job.out_dir)?;
         let fresh = rule.is_none_or(|r| r == Rule::Rebuild) || self.resources.is_none();
+        // The rest of a stopped pass: the frames before `from` are this scene's already.
+        let resuming = from > job.frames.start;
         if fresh {
-            self.states.clear();
+            if !resuming {
+                self.states.clear();
+            }
             let same_visibility = previous.is_some_and(|p| {
                 p.method.name == job.method.name && p.render.visibility == job.render.visibility
             });
@@ -476,7 +480,10 @@ impl Renderer {
         let resources = self.resources.as_ref().expect("resources made above");
         let max_age = job.method.params().cache.max_age;
         let mut pass = Pass::default();
-        let mut carried: Option<FrameState> = None;
+        // A fresh pass resumed goes on from the state its last frame left, as `render` does.
+        let mut carried: Option<FrameState> = (fresh && resuming)
+            .then(|| self.states.get(&(from - 1)).map(|k| k.state.clone()))
+            .flatten();
         for frame in from.max(job.frames.start)..=job.frames.end {
             let t0 = Instant::now();
             let (mut state, refresh) = if fresh {
@@ -548,7 +555,7 @@ impl Renderer {
         }
         // States of frames no longer in the range are kept: the range may come back (they
         // count against the budget, and go first when the range's own do not fit).
-        if fresh && pass.frames > 0 {
+        if fresh && !resuming && pass.frames > 0 {
             self.cold_per_frame = Some(pass.seconds / pass.frames as f64);
         }
         Ok(pass)

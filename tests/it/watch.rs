@@ -509,3 +509,31 @@ fn a_save_without_a_change_that_stops_a_pass_renders_the_frames_it_did_not_reach
 
     assert_frames_match_a_cold_render(&job, &out, &dir.path().join("cold"), 11);
 }
+
+#[test]
+fn a_first_render_stopped_by_a_save_without_a_change_goes_on_as_render_would() {
+    let (dir, gltf, job) = room_copy([96, 72], 11);
+    let out = dir.path().join("out");
+    let g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut w = Watch::spawn(&job, &[]);
+    w.wait_for(60, |l| l.contains("watch: frame 0:"));
+    save_atomic(&gltf, &g);
+    let stopped = w.render_line();
+    assert!(
+        stopped.contains("first render") && stopped.contains("interrupted after frame"),
+        "{stopped}"
+    );
+    let rest = w.render_line();
+    assert!(rest.contains("first render"), "{rest}");
+    // The rest starts from the state the stopped pass's last frame left: every frame is the
+    // bytes a plain render writes.
+    let cold_out = dir.path().join("cold");
+    cold_frames(&job, &cold_out, &[]);
+    for f in 0..=11 {
+        assert_eq!(
+            std::fs::read(frame(&out, f)).unwrap(),
+            std::fs::read(frame(&cold_out, f)).unwrap(),
+            "frame {f} differs from a plain render ({stopped} / {rest})"
+        );
+    }
+}
