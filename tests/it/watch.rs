@@ -537,3 +537,17 @@ fn a_first_render_stopped_by_a_save_without_a_change_goes_on_as_render_would() {
         );
     }
 }
+
+#[test]
+fn a_bad_state_memory_is_refused_naming_the_option() {
+    let (dir, _gltf, job) = room_copy([16, 12], 0);
+    let o = Command::new(env!("CARGO_BIN_EXE_anchorage"))
+        .args(["watch", "--state-memory", "lots"])
+        .arg(&job)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--state-memory: lots:"), "{err}");
+    assert!(!dir.path().join("out").exists(), "output written");
+}
