@@ -31,6 +31,10 @@
 //!
 //! Bad input never ends the watch: a file that does not load (half-written, deleted) is
 //! reported once, the last good scene stays, and the next change that loads renders again.
+//! A save that stops a pass and does not load leaves the last good scene the one that pass
+//! rendered: the frames it did not reach are rendered with it. A pass that fails (an
+//! unwritable output directory) is reported, and the next save renders every frame again,
+//! even a save that changes nothing.
 //! SIGINT and SIGTERM end it ([`crate::output::install_signal_cleanup`] removes staged temp
 //! files, so no signal, even during a render, leaves one behind).
 
@@ -421,12 +425,17 @@ pub struct Renderer {
     state_budget: u64,
     /// Seconds per frame of the last pass with a fresh state.
     pub cold_per_frame: Option<f64>,
+    /// Counts the passes that changed materials: a kept state from an earlier count (a
+    /// frame outside the range then) has anchors with the albedo of older materials.
+    materials_epoch: u64,
 }
 
-/// A frame's state and its size ([`FrameState::heap_bytes`]).
+/// A frame's state, its size ([`FrameState::heap_bytes`]) and the materials it was made
+/// with ([`Renderer::materials_epoch`]).
 struct Kept {
     state: FrameState,
     bytes: u64,
+    materials_epoch: u64,
 }
 
 impl Renderer {
@@ -437,6 +446,7 @@ impl Renderer {
             states: BTreeMap::new(),
             state_budget,
             cold_per_frame: None,
+            materials_epoch: 0,
         }
     }
 
@@ -477,6 +487,10 @@ impl Renderer {
                 _ => Some(pipeline::new_resources(job, scene)?),
             };
         }
+        if materials {
+            self.materials_epoch += 1;
+        }
+        let epoch = self.materials_epoch;
         let resources = self.resources.as_ref().expect("resources made above");
         let max_age = job.method.params().cache.max_age;
         let mut pass = Pass::default();
@@ -491,7 +505,7 @@ impl Renderer {
             } else if let Some(kept) = self.states.get(&frame) {
                 let refresh = Refresh {
                     relight_only: rule == Some(Rule::Relight),
-                    albedo: materials,
+                    albedo: kept.materials_epoch != epoch,
                 };
                 (kept.state.clone(), refresh)
             } else if let Some(s) = carried.take() {
@@ -503,10 +517,10 @@ impl Renderer {
                     .range(..frame)
                     .next_back()
                     .or_else(|| self.states.range(frame..).next())
-                    .map(|(_, kept)| kept.state.clone());
-                let albedo = materials && near.is_some();
+                    .map(|(_, kept)| kept);
+                let albedo = near.is_some_and(|k| k.materials_epoch != epoch);
                 (
-                    near.unwrap_or_default(),
+                    near.map(|k| k.state.clone()).unwrap_or_default(),
                     Refresh {
                         relight_only: false,
                         albedo,
@@ -543,7 +557,14 @@ impl Renderer {
                 );
             }
             let range = job.frames.start..=job.frames.end;
-            if !keep(&mut self.states, self.state_budget, frame, &state, range) {
+            if !keep(
+                &mut self.states,
+                self.state_budget,
+                frame,
+                &state,
+                range,
+                epoch,
+            ) {
                 pass.states_not_kept += 1;
             }
             carried = Some(state);
@@ -554,7 +575,8 @@ impl Renderer {
             }
         }
         // States of frames no longer in the range are kept: the range may come back (they
-        // count against the budget, and go first when the range's own do not fit).
+        // count against the budget, and go first when the range's own do not fit; their
+        // anchors read their albedo again if materials changed meanwhile).
         if fresh && !resuming && pass.frames > 0 {
             self.cold_per_frame = Some(pass.seconds / pass.frames as f64);
         }
@@ -572,6 +594,7 @@ fn keep(
     frame: i32,
     state: &FrameState,
     range: std::ops::RangeInclusive<i32>,
+    materials_epoch: u64,
 ) -> bool {
     let bytes = state.heap_bytes() as u64;
     states.remove(&frame);
@@ -591,6 +614,7 @@ fn keep(
             Kept {
                 state: state.clone(),
                 bytes,
+                materials_epoch,
             },
         );
     }
@@ -651,6 +675,13 @@ impl Reporter {
         }
     }
 
+    /// A pass that failed (an unwritable output directory, a full disk): always printed,
+    /// and the next scene error is printed again.
+    fn failed(&mut self, e: &Error) {
+        eprintln!("anchorage: watch: error: {e}; every frame is rendered again at the next save");
+        self.last = None;
+    }
+
     fn clear(&mut self) {
         self.last = None;
     }
@@ -702,9 +733,10 @@ pub fn run(opts: &Options) -> Result<()> {
         .state_memory
         .unwrap_or_else(|| crate::budget::Limit::of_machine().map_or(u64::MAX, |l| l.bytes / 2));
     let mut renderer = Renderer::new(state_budget);
+    // The last good scene.
     let mut current: Option<Loaded> = None;
-    // A pass a newer change stopped: its changes and the first frame it did not render.
-    let mut unfinished: Option<(Option<Changes>, i32)> = None;
+    // Frames the last good scene does not show yet.
+    let mut owed: Option<Owed> = None;
     let mut reload = true;
     loop {
         if reload {
@@ -716,57 +748,47 @@ pub fn run(opts: &Options) -> Result<()> {
                         files_of(&opts.job, Some(&new.job), Some(&new.scene)),
                         &mut watched,
                     );
-                    let mut changes = current.as_ref().map(|old| classify(old, &new));
-                    let mut from = new.job.frames.start;
-                    if let (Some(c), Some((stopped, next))) = (&changes, &unfinished)
-                        && c.what.is_empty()
-                    {
+                    let changes = current.as_ref().map(|old| classify(old, &new));
+                    let (changes, from) = match (changes, owed.take()) {
+                        (changes, None) | (changes @ None, _) => (changes, new.job.frames.start),
                         // The save that stopped a pass changed nothing: the frames that pass
                         // did not reach still show the scene before it.
-                        changes = stopped.clone();
-                        from = *next;
-                    }
-                    match &changes {
-                        Some(c) if c.what.is_empty() => {
-                            eprintln!("anchorage: watch: saved without a change: no re-render");
+                        (Some(c), Some(Owed::Stopped { changes, from })) if c.what.is_empty() => {
+                            (changes, from)
                         }
-                        _ => {
-                            if current.is_none() {
-                                for w in new.scene.warnings() {
-                                    eprintln!("anchorage: warning: {w}");
-                                }
-                            }
-                            let rule = changes.as_ref().map(|c| c.rule);
-                            let materials = changes.as_ref().is_some_and(|c| c.materials);
-                            let previous = current.as_ref().map(|c| &c.job);
-                            let files = &watched.files;
-                            let mut newer = || {
-                                reload |= rx.try_iter().any(|b| relevant(&b, files));
-                                reload
-                            };
-                            match renderer.pass(
-                                previous,
-                                &new,
-                                rule,
-                                materials,
-                                from,
-                                opts.preview,
-                                opts.quiet,
-                                &mut newer,
-                            ) {
-                                Ok(p) => {
-                                    log_pass(&new.job, changes.as_ref(), from, &p, &renderer);
-                                    unfinished =
-                                        p.interrupted_after.map(|f| (changes.clone(), f + 1));
-                                }
-                                Err(e) => {
-                                    // The next change renders from scratch.
-                                    renderer.resources = None;
-                                    unfinished = None;
-                                    reporter.error(&e);
-                                }
+                        (Some(c), Some(Owed::Stopped { .. })) => (Some(c), new.job.frames.start),
+                        // The last pass failed (its resources are gone): every frame again,
+                        // from a fresh state.
+                        (Some(mut c), Some(Owed::Failed)) => {
+                            c.what.push("again after a failed pass".into());
+                            c.rule = Rule::Rebuild;
+                            (Some(c), new.job.frames.start)
+                        }
+                    };
+                    if changes.as_ref().is_some_and(|c| c.what.is_empty()) {
+                        eprintln!("anchorage: watch: saved without a change: no re-render");
+                    } else {
+                        if current.is_none() {
+                            for w in new.scene.warnings() {
+                                eprintln!("anchorage: warning: {w}");
                             }
                         }
+                        let previous = current.as_ref().map(|c| &c.job);
+                        let files = &watched.files;
+                        let mut newer = || {
+                            reload |= rx.try_iter().any(|b| relevant(&b, files));
+                            reload
+                        };
+                        owed = run_pass(
+                            &mut renderer,
+                            previous,
+                            &new,
+                            changes.as_ref(),
+                            from,
+                            opts,
+                            &mut newer,
+                            &mut reporter,
+                        );
                     }
                     current = Some(new);
                 }
@@ -783,6 +805,26 @@ pub fn run(opts: &Options) -> Result<()> {
                         files.extend(files_of(&opts.job, Some(&c.job), None));
                     }
                     rewatch(files, &mut watched);
+                    // A pass this save stopped: the last good scene is the one it rendered,
+                    // so the frames it did not reach are rendered with that scene.
+                    if let (Some(good), Some(Owed::Stopped { changes, from })) = (&current, &owed) {
+                        let (changes, from) = (changes.clone(), *from);
+                        let files = &watched.files;
+                        let mut newer = || {
+                            reload |= rx.try_iter().any(|b| relevant(&b, files));
+                            reload
+                        };
+                        owed = run_pass(
+                            &mut renderer,
+                            Some(&good.job),
+                            good,
+                            changes.as_ref(),
+                            from,
+                            opts,
+                            &mut newer,
+                            &mut reporter,
+                        );
+                    }
                 }
             }
             if current.is_none() && watched.dirs.is_empty() {
@@ -802,6 +844,58 @@ pub fn run(opts: &Options) -> Result<()> {
         reload = relevant(&first, &watched.files);
         for b in rx.try_iter() {
             reload |= relevant(&b, &watched.files);
+        }
+    }
+}
+
+/// Frames of the last good scene that do not show it yet.
+enum Owed {
+    /// A newer save stopped the pass for `changes` (`None`: the first render) before frame
+    /// `from`.
+    Stopped { changes: Option<Changes>, from: i32 },
+    /// The last pass failed with an error: the next save renders every frame again, even
+    /// one that changes nothing (the cause, such as an unwritable output directory, may lie
+    /// outside the files watched).
+    Failed,
+}
+
+/// Renders `new`'s frames from `from` under `changes` ([`Renderer::pass`]), logs the pass
+/// or reports its error; returns the frames it leaves owed.
+#[allow(clippy::too_many_arguments)] // the scenes, the rule and how to report
+fn run_pass(
+    renderer: &mut Renderer,
+    previous: Option<&Job>,
+    new: &Loaded,
+    changes: Option<&Changes>,
+    from: i32,
+    opts: &Options,
+    newer: &mut dyn FnMut() -> bool,
+    reporter: &mut Reporter,
+) -> Option<Owed> {
+    let rule = changes.map(|c| c.rule);
+    let materials = changes.is_some_and(|c| c.materials);
+    match renderer.pass(
+        previous,
+        new,
+        rule,
+        materials,
+        from,
+        opts.preview,
+        opts.quiet,
+        newer,
+    ) {
+        Ok(p) => {
+            log_pass(&new.job, changes, from, &p, renderer);
+            p.interrupted_after.map(|f| Owed::Stopped {
+                changes: changes.cloned(),
+                from: f + 1,
+            })
+        }
+        Err(e) => {
+            // The next pass renders from scratch.
+            renderer.resources = None;
+            reporter.failed(&e);
+            Some(Owed::Failed)
         }
     }
 }

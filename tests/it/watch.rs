@@ -551,3 +551,119 @@ fn a_bad_state_memory_is_refused_naming_the_option() {
     assert!(err.contains("--state-memory: lots:"), "{err}");
     assert!(!dir.path().join("out").exists(), "output written");
 }
+
+/// Sets the lamp's emissive strength in the room's glTF.
+fn set_lamp(g: &mut Value, strength: f64) {
+    g["materials"][4]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] =
+        strength.into();
+}
+
+#[test]
+fn a_save_that_stops_a_pass_and_does_not_load_leaves_the_frames_showing_the_last_good_scene() {
+    let (dir, gltf, job) = room_copy([96, 72], 11);
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut w = Watch::spawn(&job, &[]);
+    w.render_line();
+
+    // The lamp doubled; while that pass renders, a save breaks off half-way. The pass stops,
+    // the file does not load, and the last good scene — the doubled lamp — is rendered on
+    // the frames the pass did not reach.
+    set_lamp(&mut g, 34.0);
+    save_atomic(&gltf, &g);
+    w.wait_for(60, |l| l.contains("watch: frame 0:"));
+    let whole = serde_json::to_vec(&g).unwrap();
+    std::fs::write(&gltf, &whole[..whole.len() / 2]).unwrap();
+    let stopped = w.render_line();
+    let after: i32 = stopped
+        .split("interrupted after frame ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("the pass in progress ran to its end: {stopped}"))
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    w.wait_for(60, |l| l.contains("error:") && l.contains("room.gltf"));
+    let rest = w.render_line();
+    assert!(
+        rest.contains(&format!("frames {}-11", after + 1)) && rest.contains("-> rule relight"),
+        "after a pass stopped at frame {after} by a file that does not load: {rest}"
+    );
+
+    // The file completed with the same content: nothing left to render.
+    std::fs::write(&gltf, &whole).unwrap();
+    w.wait_for(60, |l| l.contains("saved without a change"));
+    assert_frames_match_a_cold_render(&job, &out, &dir.path().join("cold"), 11);
+}
+
+#[test]
+fn a_pass_that_failed_is_rendered_again_at_the_next_save_even_without_a_change() {
+    let (dir, gltf, job) = room_copy([64, 48], 1);
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut w = Watch::start(&job);
+    w.render_line();
+
+    // The output directory replaced by a file: the pass for the doubled lamp fails.
+    std::fs::remove_dir_all(&out).unwrap();
+    std::fs::write(&out, b"not a directory").unwrap();
+    set_lamp(&mut g, 34.0);
+    save_atomic(&gltf, &g);
+    let error = w.wait_for(60, |l| l.contains("error:"));
+    assert!(error.contains("rendered again at the next save"), "{error}");
+
+    // The directory back, and the same glTF saved again: every frame is rendered again.
+    std::fs::remove_file(&out).unwrap();
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(
+        line.contains("again after a failed pass") && line.contains("-> rule rebuild"),
+        "{line}"
+    );
+    assert!(line.contains("frames 0-1"), "{line}");
+    assert_frames_match_a_cold_render(&job, &out, &dir.path().join("cold"), 1);
+}
+
+#[test]
+fn frames_back_in_the_range_after_a_material_edit_reflect_the_new_colour() {
+    let (dir, gltf, job) = room_copy([64, 48], 2);
+    let out = dir.path().join("out");
+    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    let mut j: Value = serde_json::from_slice(&std::fs::read(&job).unwrap()).unwrap();
+    let mut w = Watch::start(&job);
+    w.render_line();
+
+    // The range cut to frame 0; the white walls turned cyan; the range back to 0-2. Frames
+    // 1 and 2 start again from the states they kept from before the edit, whose anchors
+    // hold the old albedo.
+    j["frames"]["end"] = 0.into();
+    std::fs::write(&job, serde_json::to_vec(&j).unwrap()).unwrap();
+    let line = w.render_line();
+    assert!(line.contains("frames 0-0"), "{line}");
+    g["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"] =
+        serde_json::json!([0.05, 0.73, 0.73, 1.0]);
+    save_atomic(&gltf, &g);
+    let line = w.render_line();
+    assert!(line.contains(r#"material "white""#), "{line}");
+    j["frames"]["end"] = 2.into();
+    std::fs::write(&job, serde_json::to_vec(&j).unwrap()).unwrap();
+    let line = w.render_line();
+    assert!(
+        line.contains("frames 0-2") && line.contains("-> rule dynamic"),
+        "{line}"
+    );
+
+    let cold = dir.path().join("cold");
+    cold_frames(&job, &cold, &[]);
+    for f in 1..=2 {
+        let (watched, cold) = (
+            mean(&channel(&frame(&out, f), "indirect.R")),
+            mean(&channel(&frame(&cold, f), "indirect.R")),
+        );
+        assert!(
+            rel(watched, cold) < 0.05,
+            "frame {f}: indirect red {watched} against a cold render's {cold}"
+        );
+    }
+}
