@@ -23,9 +23,10 @@ declare -A TESTS=(
   [no-sample-records]="density::"
   [weber-never-removes]="density::"
   [lit-back-faces-enclosed]="density::"
+  [no-neighbour-clamp]="density::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
-  no-sample-records weber-never-removes lit-back-faces-enclosed)
+  no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

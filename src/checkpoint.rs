@@ -37,7 +37,7 @@ pub const MAGIC: &[u8; 8] = b"ANCHSTAT";
 
 /// The checkpoint format this build writes and reads. A change to [`FrameState`]'s serde
 /// layout or to this file's layout increments it.
-pub const FORMAT: u32 = 2;
+pub const FORMAT: u32 = 3;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
 /// memory budget; a file beyond this is not one of ours.
@@ -226,6 +226,7 @@ mod tests {
             normal: Vec3::Y,
             irradiance: Vec3::ONE,
             radius: 1.0,
+            reach_radius: 1.0,
             grad_r: [Vec3::ZERO; 3],
             grad_t: [Vec3::ZERO; 3],
             motion: Motion::Static,

@@ -303,6 +303,11 @@ pub struct MethodSettings {
     /// when it is left out) is below this; 0 keeps every record. Default 0.5.
     #[schemars(range(min = 0, max = 1000))]
     pub weber_threshold: Option<f32>,
+    /// Neighbour clamping (Křivánek et al. 2006): a cache record's radius is at most a
+    /// neighbouring record's plus this times their distance, so that records above a
+    /// contact stop short of it; 0 turns it off. Default 2.
+    #[schemars(range(min = 0, max = 1000))]
+    pub neighbour_clamp: Option<f32>,
     /// `path-trace` samples per pixel. Default: the preset's (64, 256, 1024).
     #[schemars(range(min = 1, max = 1_048_576))]
     pub path_samples: Option<u32>,
@@ -381,6 +386,9 @@ impl MethodSettings {
         if let Some(v) = self.weber_threshold {
             p.cache.weber_threshold = v;
         }
+        if let Some(v) = self.neighbour_clamp {
+            p.cache.neighbour_clamp = v;
+        }
         if let Some(v) = self.path_samples {
             p.path_samples = v;
         }
@@ -454,6 +462,12 @@ impl MethodSettings {
             return bad(
                 "weber_threshold",
                 "must be in [0, 1000] (0 keeps every record)",
+            );
+        }
+        if !(0.0..=1000.0).contains(&p.cache.neighbour_clamp) {
+            return bad(
+                "neighbour_clamp",
+                "must be in [0, 1000] (0 turns neighbour clamping off)",
             );
         }
         if p.glossy.bucket.strata.iter().any(|&s| s == 0 || s > 256) {

@@ -30,7 +30,7 @@ impl RecordGrid {
 
     pub(super) fn insert(&mut self, i: u32, r: &Record) {
         let a = if self.error > 0.0 { self.error } else { 1.0 };
-        let reach = REACH * a * r.radius;
+        let reach = REACH * a * r.reach_radius;
         if self.base == 0.0 {
             self.base = (2.0 * reach).max(f32::MIN_POSITIVE);
         }

@@ -88,6 +88,12 @@ pub struct Record {
     /// Ward's R_i: harmonic-mean hit distance, clamped so that a·R_i lies between the
     /// minimum and maximum spacing in pixel footprints.
     pub radius: f32,
+    /// R_i as the cache uses it: [`Record::radius`] clamped by the neighbouring records'
+    /// (`IrradianceCache`'s neighbour clamping, Křivánek et al. 2006). Derived from the
+    /// records whenever the cache's lookup grid is built, so neither serialised nor set
+    /// anywhere else.
+    #[serde(skip)]
+    pub reach_radius: f32,
     /// Rotational and translational gradients, per colour channel (R, G, B).
     pub grad_r: [Vec3; 3],
     pub grad_t: [Vec3; 3],
@@ -186,6 +192,7 @@ pub fn finish_record(
         normal: sp.ns,
         irradiance,
         radius,
+        reach_radius: radius,
         grad_r,
         grad_t,
         motion,

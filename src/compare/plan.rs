@@ -60,10 +60,12 @@ pub enum Setting {
     BucketStrata([u32; 2]),
     /// The Weber rule's threshold (`weber_threshold`; 0 keeps every record).
     Weber(f32),
+    /// Neighbour clamping's slope (`neighbour_clamp`; 0 turns it off).
+    Neighbour(f32),
 }
 
 const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k=, visibility=, \
-                        glossy=bucketing|importance, glossy_rays=, bucket_strata=MxN or weber= with comma-separated values";
+                        glossy=bucketing|importance, glossy_rays=, bucket_strata=MxN, weber= or neighbour= with comma-separated values";
 
 impl Plan {
     /// Parses and checks `flags` against `job`: every swept value is checked like a
@@ -163,7 +165,7 @@ impl Setting {
                 let v = v.trim();
                 Setting::parse(key, v).ok_or_else(|| match key {
                     "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" | "glossy"
-                    | "glossy_rays" | "bucket_strata" | "weber" => {
+                    | "glossy_rays" | "bucket_strata" | "weber" | "neighbour" => {
                         format!("{v:?} is not a value of {key} ({SETTINGS})")
                     }
                     _ => format!("unknown setting {key:?}: {SETTINGS}"),
@@ -199,6 +201,7 @@ impl Setting {
                 Setting::BucketStrata([m.parse().ok()?, n.parse().ok()?])
             }
             "weber" => Setting::Weber(v.parse().ok()?),
+            "neighbour" => Setting::Neighbour(v.parse().ok()?),
             _ => return None,
         })
     }
@@ -219,6 +222,7 @@ impl Setting {
                 m.glossy_mode = Some(GlossyMode::Bucketing);
             }
             Setting::Weber(v) => m.weber_threshold = Some(v),
+            Setting::Neighbour(v) => m.neighbour_clamp = Some(v),
         }
     }
 
@@ -235,6 +239,7 @@ impl Setting {
             Setting::GlossyRays(v) => format!("glossy_rays={v}"),
             Setting::BucketStrata([m, n]) => format!("bucket_strata={m}x{n}"),
             Setting::Weber(v) => format!("weber={v}"),
+            Setting::Neighbour(v) => format!("neighbour={v}"),
         }
     }
 }

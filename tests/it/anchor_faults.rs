@@ -156,9 +156,11 @@ fn a_moving_light_reaches_the_indirect_light_through_re_estimated_anchors() {
 /// re-shot (§3.2); if they were not, the floor would keep the wall's light behind the plate.
 /// Frames 10, 12 and 20 of a sequence must agree with brute force on the same caches within
 /// 15 % per tile (measured: pass from 6.5 %; re-shooting nothing, the floor behind the plate
-/// keeps the wall's light: 9 400 %; L_i frozen, 38 %) and with the path tracer within 150 %
-/// (brute force itself needs 78–126 % in one 4-pixel tile of the plate's penumbra, where the
-/// photon estimates blur the shadow edge, depending on the photons' random sequence).
+/// keeps the wall's light: 9 400 %; L_i frozen, 38 %) and with the path tracer within 175 %
+/// (brute force itself needs 78–150 % in one 4-pixel tile of the plate's penumbra, where the
+/// photon estimates blur the shadow edge, depending on the photons' random sequence; the
+/// most, 150 %, since records' radii are clamped by their neighbours', which at 24 × 24
+/// pixels leaves that tile to the records nearest the shadow edge).
 #[test]
 fn a_plate_in_front_of_a_lit_wall_shadows_the_indirect_light_while_it_is_there() {
     let dir = tempdir();
@@ -210,7 +212,7 @@ fn a_plate_in_front_of_a_lit_wall_shadows_the_indirect_light_while_it_is_there()
     let (anchors, _) = sequence(&job("anchors", ""), 0..=20, &frames);
     let (brute, _) = sequence(&job("brute-force", ""), 0..=20, &frames);
     let pt = path_traced(&job("path-trace", r#","path_samples":256"#), &frames);
-    check("sliding-plate", &anchors, &brute, &pt, 0.15, 1.5);
+    check("sliding-plate", &anchors, &brute, &pt, 0.15, 1.75);
 }
 
 /// A floor and a back wall split by a 2 cm fin that stands out from the back wall, lit by
