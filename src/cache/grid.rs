@@ -2,8 +2,6 @@
 
 use glam::Vec3;
 
-use super::Record;
-
 /// Records by the space their validity spheres cover: a multi-level hashed grid (in the
 /// spirit of Ward's octree). A record of reach ρ = `REACH`·a·R_i sits at the level whose
 /// cells are at least 2ρ wide, in the ≤ 8 cells its sphere overlaps, so a lookup reads one
@@ -28,16 +26,17 @@ impl RecordGrid {
         (level, c.x as i32, c.y as i32, c.z as i32)
     }
 
-    pub(super) fn insert(&mut self, i: u32, r: &Record) {
+    /// Adds record `i` at `position` with validity radius `radius` (its R_i).
+    pub(super) fn insert(&mut self, i: u32, position: Vec3, radius: f32) {
         let a = if self.error > 0.0 { self.error } else { 1.0 };
-        let reach = REACH * a * r.reach_radius;
+        let reach = REACH * a * radius;
         if self.base == 0.0 {
             self.base = (2.0 * reach).max(f32::MIN_POSITIVE);
         }
         let level = (2.0 * reach / self.base).log2().ceil().max(-60.0) as i32;
         let (lo, hi) = (
-            self.cell(level, r.position - reach),
-            self.cell(level, r.position + reach),
+            self.cell(level, position - reach),
+            self.cell(level, position + reach),
         );
         for x in lo.1..=hi.1 {
             for y in lo.2..=hi.2 {

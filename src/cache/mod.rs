@@ -87,7 +87,14 @@ pub struct Interpolated {
 #[derive(Debug, Clone, Default)]
 pub struct IrradianceCache {
     pub records: Vec<Record>,
+    /// Records by their clamped radii ([`Record::reach_radius`]), for lookups. Records
+    /// added since the last full build are in it by the radii they had when added; radii
+    /// only shrink until the next build (clamping by more records can only lower them), so
+    /// a record sits in cells that hold at least its sphere, and a lookup still meets every
+    /// record valid at its point.
     grid: RecordGrid,
+    /// Records by Ward's radii, for neighbour clamping ([`IrradianceCache::clamp_to_neighbours`]).
+    ward: RecordGrid,
     next_id: u32,
     /// The hits of the strata whose rays met a dynamic prim in the frame the records were
     /// last brought up to date for, by record id: no anchor holds their light, and watch
@@ -151,6 +158,7 @@ impl<'de> Deserialize<'de> for IrradianceCache {
         let mut cache = IrradianceCache {
             records: data.records,
             grid: RecordGrid::default(),
+            ward: RecordGrid::default(),
             next_id: data.next_id,
             dynamic_hits: DynamicHits::default(),
             neighbour_clamp: data.neighbour_clamp,
@@ -245,24 +253,21 @@ impl IrradianceCache {
         Ok(())
     }
 
-    /// Builds the lookup grid, after clamping every record's radius by its neighbours'
-    /// ([`IrradianceCache::clamp_to_neighbours`]).
+    /// Builds the grid of Ward's radii, clamps every record's radius by its neighbours'
+    /// ([`IrradianceCache::clamp_to_neighbours`]), then builds the lookup grid of the
+    /// clamped radii.
     fn rebuild_tree(&mut self) {
-        for r in &mut self.records {
-            r.reach_radius = r.radius;
-        }
-        self.build_grid();
-        if self.clamp_to_neighbours() {
-            self.build_grid();
-        }
-    }
-
-    fn build_grid(&mut self) {
         let error = self.grid.error;
+        self.ward = RecordGrid::default();
+        self.ward.error = error;
+        for (i, r) in self.records.iter().enumerate() {
+            self.ward.insert(i as u32, r.position, r.radius);
+        }
+        self.clamp_to_neighbours(0);
         self.grid = RecordGrid::default();
         self.grid.error = error;
         for (i, r) in self.records.iter().enumerate() {
-            self.grid.insert(i as u32, r);
+            self.grid.insert(i as u32, r.position, r.reach_radius);
         }
     }
 
@@ -278,48 +283,76 @@ impl IrradianceCache {
     /// contact, where irradiance falls off faster than its gradient says, while the records
     /// next to the contact have small ones. Clamped, the large record stops short of the
     /// small ones' region, and placement fills it with records of its own. Computed from
-    /// Ward's radii (`reach_radius` reset to `radius` and the grid built from them) in one
-    /// pass, as the minimum of the caps, so the result depends on the records alone, not on
-    /// their order or the thread count. Enclosed records (never used) clamp nothing. Returns
-    /// whether any radius changed.
-    fn clamp_to_neighbours(&mut self) -> bool {
+    /// Ward's radii in one pass, as the minimum of the caps, so the result depends on the
+    /// records alone, not on their order, the grids' history or the thread count. Records
+    /// from `first` on are new (the others were clamped among themselves before): only the
+    /// pairs with a new record are looked at. Enclosed records (never used) clamp nothing.
+    fn clamp_to_neighbours(&mut self, first: usize) {
         let slope = self.neighbour_clamp;
         if slope <= 0.0 {
-            return false;
+            for r in &mut self.records[first..] {
+                r.reach_radius = r.radius;
+            }
+            return;
         }
-        let a = if self.grid.error > 0.0 {
-            self.grid.error
+        let a = if self.ward.error > 0.0 {
+            self.ward.error
         } else {
             1.0
         };
-        let caps: Vec<(u32, f32)> = self
+        // What the pass reads of each record, side by side in memory.
+        let points: Vec<(Vec3, Vec3, f32)> = self
             .records
-            .par_iter()
-            .enumerate()
-            .filter(|(_, rj)| !rj.enclosed)
-            .flat_map_iter(|(j, rj)| {
-                let mut out = Vec::new();
-                self.grid.with_candidates(rj.position, |idx| {
+            .iter()
+            .map(|r| (r.position, r.normal, r.radius))
+            .collect();
+        // The records before `first` keep the radii the records before them gave them
+        // (more records can only lower a radius); the pass adds the caps of the pairs
+        // with a new record: new j (the grid of Ward's radii finds the records whose
+        // sphere holds x_j), and old j in a new record's sphere (a grid of the new records
+        // alone finds them, without a search of every old record's neighbours).
+        let mut fresh = RecordGrid::default();
+        fresh.error = self.ward.error;
+        for (i, p) in points.iter().enumerate().skip(first) {
+            fresh.insert(i as u32, p.0, p.2);
+        }
+        let start = || {
+            self.records
+                .iter()
+                .enumerate()
+                .map(|(i, r)| if i < first { r.reach_radius } else { r.radius })
+                .collect::<Vec<f32>>()
+        };
+        let reach = (0..points.len())
+            .into_par_iter()
+            .filter(|&j| !self.records[j].enclosed)
+            .fold(start, |mut reach, j| {
+                let (xj, nj, rj) = points[j];
+                let grid = if j >= first { &self.ward } else { &fresh };
+                grid.with_candidates(xj, |idx| {
                     for &i in idx {
-                        let ri = &self.records[i as usize];
-                        if i as usize == j || ri.normal.dot(rj.normal) <= 0.0 {
+                        let (xi, ni, ri) = points[i as usize];
+                        if i as usize == j || ni.dot(nj) <= 0.0 {
                             continue;
                         }
-                        let d = (ri.position - rj.position).length();
-                        let cap = rj.radius + slope * d;
-                        if cap < ri.radius && d < REACH * a * ri.radius {
-                            out.push((i, cap));
+                        let d = (xi - xj).length();
+                        let cap = rj + slope * d;
+                        if cap < reach[i as usize] && d < REACH * a * ri {
+                            reach[i as usize] = cap;
                         }
                     }
                 });
-                out
+                reach
             })
-            .collect();
-        for &(i, cap) in &caps {
-            let r = &mut self.records[i as usize];
-            r.reach_radius = r.reach_radius.min(cap);
+            .reduce(start, |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = x.min(y);
+                }
+                a
+            });
+        for (r, reach) in self.records.iter_mut().zip(reach) {
+            r.reach_radius = reach;
         }
-        !caps.is_empty()
     }
 
     /// Sets Ward's a the lookups will use (at most `REACH` times it) and the slope of
@@ -646,8 +679,21 @@ impl IrradianceCache {
             })
             .collect();
         timings.irradiance_estimation += t1.elapsed().as_secs_f64();
-        self.records.extend(records);
-        self.rebuild_tree();
+        self.append(records);
+    }
+
+    /// Adds `records` at the end: to both grids, with their radii clamped.
+    fn append(&mut self, records: Vec<Record>) {
+        let first = self.records.len();
+        for r in records {
+            self.ward
+                .insert(self.records.len() as u32, r.position, r.radius);
+            self.records.push(r);
+        }
+        self.clamp_to_neighbours(first);
+        for (i, r) in self.records.iter().enumerate().skip(first) {
+            self.grid.insert(i as u32, r.position, r.reach_radius);
+        }
     }
 
     /// Adds the hits among `hits` (stratum, hit) that met a dynamic prim to
@@ -738,13 +784,19 @@ mod tests {
         let mut parts = Vec::new();
         let at = Vec3::new(-1.5, 0.0, 0.0);
         assert!(cache.interpolate(at, Vec3::Y, 0.25, &mut parts).is_none());
-        // The same radii in any order.
-        let mut reversed = records;
+        // The same radii in any order, and added in two batches.
+        let mut reversed = records.clone();
         reversed.reverse();
         cache.replace_records(reversed);
         let mut again: Vec<f32> = cache.records.iter().map(|r| r.reach_radius).collect();
         again.reverse();
         assert_eq!(again, reach);
+        for split in 0..records.len() {
+            cache.replace_records(records[..split].to_vec());
+            cache.append(records[split..].to_vec());
+            let batches: Vec<f32> = cache.records.iter().map(|r| r.reach_radius).collect();
+            assert_eq!(batches, reach, "added after record {split}");
+        }
     }
 
     #[test]

@@ -90,8 +90,8 @@ pub struct Record {
     pub radius: f32,
     /// R_i as the cache uses it: [`Record::radius`] clamped by the neighbouring records'
     /// (`IrradianceCache`'s neighbour clamping, Křivánek et al. 2006). Derived from the
-    /// records whenever the cache's lookup grid is built, so neither serialised nor set
-    /// anywhere else.
+    /// records whenever the cache's records change, so neither serialised nor set anywhere
+    /// else.
     #[serde(skip)]
     pub reach_radius: f32,
     /// Rotational and translational gradients, per colour channel (R, G, B).
