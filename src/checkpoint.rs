@@ -207,7 +207,6 @@ mod tests {
         use crate::anchor::{Anchor, AnchorId, AnchorSet};
         use crate::cache::Stratum;
         use crate::cache::record::Record;
-        use crate::geom::Motion;
         use glam::Vec3;
 
         let q = Quantizer::new(Vec3::ZERO, Vec3::ONE);
@@ -222,23 +221,9 @@ mod tests {
             ));
         }
         let record = Record {
-            position: Vec3::ZERO,
-            normal: Vec3::Y,
-            irradiance: Vec3::ONE,
-            radius: 1.0,
-            reach_radius: 1.0,
-            grad_r: [Vec3::ZERO; 3],
-            grad_t: [Vec3::ZERO; 3],
-            motion: Motion::Static,
-            id: 0,
-            last_used: 0,
-            footprint: 0.01,
-            error: Vec3::ZERO,
-            ng: Vec3::Y,
             strata: vec![Stratum::new(Some(AnchorId(1)), 0, 1.0, 0.01); 4],
-            reshot: 0.0,
             dominant_anchor: Some(AnchorId(1)),
-            enclosed: false,
+            ..Record::bare(Vec3::ZERO, Vec3::Y, 1.0)
         };
         let mut good = FrameState::default();
         good.cache.records.push(record);

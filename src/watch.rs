@@ -774,10 +774,10 @@ pub fn run(opts: &Options) -> Result<()> {
                             }
                         }
                         let previous = current.as_ref().map(|c| &c.job);
-                        let files = &watched.files;
-                        let mut newer = || {
-                            reload |= rx.try_iter().any(|b| relevant(&b, files));
-                            reload
+                        let waiting = Waiting {
+                            rx: &rx,
+                            files: &watched.files,
+                            reload: &mut reload,
                         };
                         owed = run_pass(
                             &mut renderer,
@@ -786,7 +786,7 @@ pub fn run(opts: &Options) -> Result<()> {
                             changes.as_ref(),
                             from,
                             opts,
-                            &mut newer,
+                            waiting,
                             &mut reporter,
                         );
                     }
@@ -809,10 +809,10 @@ pub fn run(opts: &Options) -> Result<()> {
                     // so the frames it did not reach are rendered with that scene.
                     if let (Some(good), Some(Owed::Stopped { changes, from })) = (&current, &owed) {
                         let (changes, from) = (changes.clone(), *from);
-                        let files = &watched.files;
-                        let mut newer = || {
-                            reload |= rx.try_iter().any(|b| relevant(&b, files));
-                            reload
+                        let waiting = Waiting {
+                            rx: &rx,
+                            files: &watched.files,
+                            reload: &mut reload,
                         };
                         owed = run_pass(
                             &mut renderer,
@@ -821,7 +821,7 @@ pub fn run(opts: &Options) -> Result<()> {
                             changes.as_ref(),
                             from,
                             opts,
-                            &mut newer,
+                            waiting,
                             &mut reporter,
                         );
                     }
@@ -859,6 +859,14 @@ enum Owed {
     Failed,
 }
 
+/// Where a pass learns of a newer change: the watcher's events for the files followed; a
+/// relevant one sets `reload`.
+struct Waiting<'a> {
+    rx: &'a mpsc::Receiver<DebounceEventResult>,
+    files: &'a BTreeSet<PathBuf>,
+    reload: &'a mut bool,
+}
+
 /// Renders `new`'s frames from `from` under `changes` ([`Renderer::pass`]), logs the pass
 /// or reports its error; returns the frames it leaves owed.
 #[allow(clippy::too_many_arguments)] // the scenes, the rule and how to report
@@ -869,9 +877,13 @@ fn run_pass(
     changes: Option<&Changes>,
     from: i32,
     opts: &Options,
-    newer: &mut dyn FnMut() -> bool,
+    waiting: Waiting,
     reporter: &mut Reporter,
 ) -> Option<Owed> {
+    let mut newer = || {
+        *waiting.reload |= waiting.rx.try_iter().any(|b| relevant(&b, waiting.files));
+        *waiting.reload
+    };
     let rule = changes.map(|c| c.rule);
     let materials = changes.is_some_and(|c| c.materials);
     match renderer.pass(
@@ -882,7 +894,7 @@ fn run_pass(
         from,
         opts.preview,
         opts.quiet,
-        newer,
+        &mut newer,
     ) {
         Ok(p) => {
             log_pass(&new.job, changes, from, &p, renderer);

@@ -731,42 +731,19 @@ mod tests {
     use crate::cache::gather::estimate_all;
     use crate::geom::Geometry;
 
-    /// A bare record at `x` facing `n` with Ward radius `r`.
-    fn bare(x: Vec3, n: Vec3, r: f32) -> Record {
-        Record {
-            position: x,
-            normal: n,
-            irradiance: Vec3::ONE,
-            radius: r,
-            reach_radius: r,
-            grad_r: [Vec3::ZERO; 3],
-            grad_t: [Vec3::ZERO; 3],
-            motion: Motion::Static,
-            id: 0,
-            last_used: 0,
-            footprint: 0.01,
-            error: Vec3::ZERO,
-            ng: n,
-            strata: Vec::new(),
-            reshot: 0.0,
-            dominant_anchor: None,
-            enclosed: false,
-        }
-    }
-
     #[test]
     fn radii_are_clamped_by_their_neighbours_whatever_their_order() {
         // On a floor: a large record and, 1 away, a small one next to a contact; a record
         // facing down at the small one's place, and an enclosed one there.
-        let small = bare(Vec3::new(1.0, 0.0, 0.0), Vec3::Y, 0.1);
-        let mut enclosed = bare(Vec3::new(0.5, 0.0, 0.0), Vec3::Y, 0.01);
+        let small = Record::bare(Vec3::new(1.0, 0.0, 0.0), Vec3::Y, 0.1);
+        let mut enclosed = Record::bare(Vec3::new(0.5, 0.0, 0.0), Vec3::Y, 0.01);
         enclosed.enclosed = true;
         let records = vec![
-            bare(Vec3::ZERO, Vec3::Y, 10.0),
+            Record::bare(Vec3::ZERO, Vec3::Y, 10.0),
             small,
-            bare(Vec3::new(1.0, 0.0, 0.0), -Vec3::Y, 10.0),
+            Record::bare(Vec3::new(1.0, 0.0, 0.0), -Vec3::Y, 10.0),
             enclosed,
-            bare(Vec3::new(100.0, 0.0, 0.0), Vec3::Y, 10.0),
+            Record::bare(Vec3::new(100.0, 0.0, 0.0), Vec3::Y, 10.0),
         ];
         let mut cache = IrradianceCache::default();
         cache.set_error(0.25, 2.0);

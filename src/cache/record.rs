@@ -124,6 +124,32 @@ pub struct Record {
     pub enclosed: bool,
 }
 
+#[cfg(test)]
+impl Record {
+    /// A record without strata at `position` facing `normal`, with Ward radius `radius`.
+    pub(crate) fn bare(position: Vec3, normal: Vec3, radius: f32) -> Record {
+        Record {
+            position,
+            normal,
+            irradiance: Vec3::ONE,
+            radius,
+            reach_radius: radius,
+            grad_r: [Vec3::ZERO; 3],
+            grad_t: [Vec3::ZERO; 3],
+            motion: Motion::Static,
+            id: 0,
+            last_used: 0,
+            footprint: 0.01,
+            error: Vec3::ZERO,
+            ng: normal,
+            strata: Vec::new(),
+            reshot: 0.0,
+            dominant_anchor: None,
+            enclosed: false,
+        }
+    }
+}
+
 impl Record {
     /// First-order irradiance at (x, n) from the record's gradients (Ward & Heckbert 1992):
     /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as [`gradients`] computes it.

@@ -397,6 +397,18 @@ fn assert_frames_match_a_cold_render(job: &Path, out: &Path, cold: &Path, last: 
     }
 }
 
+/// The frame after which a re-render line says its pass was stopped.
+fn stopped_after(line: &str) -> i32 {
+    line.split("interrupted after frame ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("the pass in progress ran to its end: {line}"))
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
 /// Frame `f`'s EXR of `out`.
 fn frame(out: &Path, f: i32) -> PathBuf {
     out.join(format!("room.{f:04}.exr"))
@@ -492,15 +504,7 @@ fn a_save_without_a_change_that_stops_a_pass_renders_the_frames_it_did_not_reach
     w.wait_for(60, |l| l.contains("watch: frame 0:"));
     save_atomic(&gltf, &g);
     let stopped = w.render_line();
-    let after: i32 = stopped
-        .split("interrupted after frame ")
-        .nth(1)
-        .unwrap_or_else(|| panic!("the pass in progress ran to its end: {stopped}"))
-        .split(' ')
-        .next()
-        .unwrap()
-        .parse()
-        .unwrap();
+    let after = stopped_after(&stopped);
     let rest = w.render_line();
     assert!(
         rest.contains(&format!("frames {}-11", after + 1)) && rest.contains("-> rule relight"),
@@ -575,15 +579,7 @@ fn a_save_that_stops_a_pass_and_does_not_load_leaves_the_frames_showing_the_last
     let whole = serde_json::to_vec(&g).unwrap();
     std::fs::write(&gltf, &whole[..whole.len() / 2]).unwrap();
     let stopped = w.render_line();
-    let after: i32 = stopped
-        .split("interrupted after frame ")
-        .nth(1)
-        .unwrap_or_else(|| panic!("the pass in progress ran to its end: {stopped}"))
-        .split(' ')
-        .next()
-        .unwrap()
-        .parse()
-        .unwrap();
+    let after = stopped_after(&stopped);
     w.wait_for(60, |l| l.contains("error:") && l.contains("room.gltf"));
     let rest = w.render_line();
     assert!(
