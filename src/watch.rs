@@ -741,6 +741,9 @@ pub fn run(opts: &Options) -> Result<()> {
     loop {
         if reload {
             reload = false;
+            // The pass this reload calls for: its changes, first frame, and the job the
+            // resources were made for (`None`: the first render).
+            let mut pass: Option<(Option<Changes>, i32, Option<Job>)> = None;
             match Loaded::load(&opts.job, &opts.overrides) {
                 Ok(new) => {
                     reporter.clear();
@@ -773,22 +776,7 @@ pub fn run(opts: &Options) -> Result<()> {
                                 eprintln!("anchorage: warning: {w}");
                             }
                         }
-                        let previous = current.as_ref().map(|c| &c.job);
-                        let waiting = Waiting {
-                            rx: &rx,
-                            files: &watched.files,
-                            reload: &mut reload,
-                        };
-                        owed = run_pass(
-                            &mut renderer,
-                            previous,
-                            &new,
-                            changes.as_ref(),
-                            from,
-                            opts,
-                            waiting,
-                            &mut reporter,
-                        );
+                        pass = Some((changes, from, current.as_ref().map(|c| c.job.clone())));
                     }
                     current = Some(new);
                 }
@@ -808,24 +796,26 @@ pub fn run(opts: &Options) -> Result<()> {
                     // A pass this save stopped: the last good scene is the one it rendered,
                     // so the frames it did not reach are rendered with that scene.
                     if let (Some(good), Some(Owed::Stopped { changes, from })) = (&current, &owed) {
-                        let (changes, from) = (changes.clone(), *from);
-                        let waiting = Waiting {
-                            rx: &rx,
-                            files: &watched.files,
-                            reload: &mut reload,
-                        };
-                        owed = run_pass(
-                            &mut renderer,
-                            Some(&good.job),
-                            good,
-                            changes.as_ref(),
-                            from,
-                            opts,
-                            waiting,
-                            &mut reporter,
-                        );
+                        pass = Some((changes.clone(), *from, Some(good.job.clone())));
                     }
                 }
+            }
+            if let (Some((changes, from, previous)), Some(scene)) = (pass, &current) {
+                let waiting = Waiting {
+                    rx: &rx,
+                    files: &watched.files,
+                    reload: &mut reload,
+                };
+                owed = run_pass(
+                    &mut renderer,
+                    previous.as_ref(),
+                    scene,
+                    changes.as_ref(),
+                    from,
+                    opts,
+                    waiting,
+                    &mut reporter,
+                );
             }
             if current.is_none() && watched.dirs.is_empty() {
                 return Err(Error::Render(format!(
