@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Mutation check for the anchor method and the cache's density rules: applies each deliberate
+# Mutation check for the anchor method, the cache's density rules and ray offsets: applies each deliberate
 # breakage kept in scripts/mutations/NAME.patch to the source, builds the tests, runs the
 # tests that are meant to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
 # restored after each one, also on interrupt.
@@ -24,9 +24,11 @@ declare -A TESTS=(
   [weber-never-removes]="density::"
   [lit-back-faces-enclosed]="density::"
   [no-neighbour-clamp]="density::"
+  [ray-offsets-shrunk]="offsets::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
-  no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp)
+  no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
+  ray-offsets-shrunk)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

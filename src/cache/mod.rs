@@ -8,7 +8,11 @@
 //! Placement is deterministic and parallel: image-space grids from coarse to fine; at each
 //! level every grid pixel whose surface point no record covers gets a record, all records of
 //! a level are gathered in parallel and inserted in pixel order. Validity radii are clamped
-//! to a range of pixel footprints (Tabellion & Lamorlette 2004), so density follows the image.
+//! to a range of pixel footprints (Tabellion & Lamorlette 2004), so density follows the image,
+//! and by the neighbouring records' radii (Křivánek et al. 2006), so that records stop short
+//! of a contact where their neighbours' radii are small
+//! ([`IrradianceCache::clamp_to_neighbours`]). No crate offers an irradiance cache; the
+//! grid, the clamping and the placement follow the papers cited at each.
 //!
 
 pub mod gather;
