@@ -177,7 +177,7 @@ pub fn render_in_bands(
     };
     let mut gt = GatherTimings::default();
     let cache = state.cache;
-    cache.set_error(params.cache.error, params.cache.neighbour_clamp);
+    cache.set_params(&params.cache);
     if method == CachedMethod::Anchors && refresh.relight_only {
         st.anchors = Some(super::anchors::relight(
             ctx,

@@ -326,3 +326,22 @@ fn inspect_and_validate() {
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("/nonexistent/job.json"));
 }
+
+#[test]
+fn out_of_range_method_settings_are_bad_input() {
+    let dir = tempdir();
+    std::fs::write(
+        dir.path().join("s.gltf"),
+        tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
+    )
+    .unwrap();
+    let (code, err) = render_in(
+        dir.path(),
+        &JOB.replace(
+            r#""resolution""#,
+            r#""method":{"neighbour_clamp":-1},"resolution""#,
+        ),
+        &[],
+    );
+    assert_bad_input(dir.path(), code, &err, &["job.json", "neighbour_clamp"]);
+}
