@@ -65,6 +65,14 @@ fn render_in(dir: &Path, job_text: &str, extra: &[&str]) -> (i32, String) {
     (o.status.code().unwrap_or(-1), stderr(&o))
 }
 
+/// One triangle's positions.
+const TRIANGLE: [f32; 9] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+
+/// Writes `s.gltf`, one triangle, into `dir` (the scene of [`JOB`]).
+fn write_triangle(dir: &Path) {
+    std::fs::write(dir.join("s.gltf"), tiny_gltf(&TRIANGLE, &[0, 1, 2])).unwrap();
+}
+
 const JOB: &str =
     r#"{"scene":[{"path":"s.gltf"}],"resolution":[16,16],"output":{"directory":"out"}}"#;
 
@@ -163,11 +171,7 @@ fn degenerate_triangles_are_skipped_with_a_warning() {
 #[test]
 fn unknown_job_keys_are_bad_input() {
     let dir = tempdir();
-    std::fs::write(
-        dir.path().join("s.gltf"),
-        tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
-    )
-    .unwrap();
+    write_triangle(dir.path());
     let (code, err) = render_in(
         dir.path(),
         &JOB.replace(r#""resolution""#, r#""resolutoin""#),
@@ -210,11 +214,7 @@ fn frame_range_outside_the_animation_is_bad_input() {
 #[test]
 fn unwritable_output_directory_is_bad_input() {
     let dir = tempdir();
-    std::fs::write(
-        dir.path().join("s.gltf"),
-        tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
-    )
-    .unwrap();
+    write_triangle(dir.path());
     // A path below a regular file can never be created, not even by root.
     std::fs::write(dir.path().join("file"), b"").unwrap();
     let bad = dir.path().join("file/frames");
@@ -226,8 +226,7 @@ fn unwritable_output_directory_is_bad_input() {
 #[test]
 fn required_unsupported_extension_is_bad_input() {
     let dir = tempdir();
-    let g = tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2])
-        .replace(r#""extensionsUsed":["KHR_lights_punctual"]"#, r#""extensionsUsed":["KHR_lights_punctual","KHR_draco_mesh_compression","EXT_fancy"],"extensionsRequired":["KHR_draco_mesh_compression"]"#);
+    let g = tiny_gltf(&TRIANGLE, &[0, 1, 2]).replace(r#""extensionsUsed":["KHR_lights_punctual"]"#, r#""extensionsUsed":["KHR_lights_punctual","KHR_draco_mesh_compression","EXT_fancy"],"extensionsRequired":["KHR_draco_mesh_compression"]"#);
     std::fs::write(dir.path().join("s.gltf"), &g).unwrap();
     let (code, err) = render_in(dir.path(), JOB, &[]);
     assert_bad_input(
@@ -330,11 +329,7 @@ fn inspect_and_validate() {
 #[test]
 fn out_of_range_method_settings_are_bad_input() {
     let dir = tempdir();
-    std::fs::write(
-        dir.path().join("s.gltf"),
-        tiny_gltf(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[0, 1, 2]),
-    )
-    .unwrap();
+    write_triangle(dir.path());
     let (code, err) = render_in(
         dir.path(),
         &JOB.replace(
