@@ -33,6 +33,23 @@ from exrtools import read, rms_pct
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+def layer_matrix(t):
+    """A job layer's `transform` as a row-major 4x4 (16 numbers), as anchorage builds it
+    (`job::TransformFile::matrix`: translation · rotation · scale, the rotation glam's
+    intrinsic XYZ Euler angles, Rx·Ry·Rz); None for none."""
+    if not t:
+        return None
+    x, y, z = np.radians(t.get("rotation_deg") or [0.0, 0.0, 0.0])
+    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    s = t.get("scale", 1.0)
+    m = np.eye(4)
+    m[:3, :3] = rx @ ry @ rz @ np.diag(np.broadcast_to(np.asarray(s, float), (3,)))
+    m[:3, 3] = t.get("translation") or [0.0, 0.0, 0.0]
+    return [float(v) for v in m.flatten()]
+
+
 def cycles_images(path):
     """Beauty and indirect light of a Cycles multilayer EXR."""
     p = "ViewLayer."
@@ -68,10 +85,9 @@ def main():
     job = json.load(open(args.job))
     base = os.path.dirname(os.path.abspath(args.job))
     for layer in job["scene"]:
-        if "transform" in layer:
-            sys.exit("layer transforms are not passed to Blender: use a job without them")
         layer["path"] = os.path.normpath(os.path.join(base, layer["path"]))
-    gltfs = [layer["path"] for layer in job["scene"]]
+    layers = [{"path": layer["path"], "matrix": layer_matrix(layer.get("transform"))}
+              for layer in job["scene"]]
     env = dict(os.environ)
     site = os.path.join(os.path.dirname(os.path.dirname(sys.executable)), "lib",
                         f"python{sys.version_info.major}.{sys.version_info.minor}", "site-packages")
@@ -79,13 +95,15 @@ def main():
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="anchorage-cycles-") as tmp:
+        layers_json = os.path.join(tmp, "layers.json")
+        json.dump(layers, open(layers_json, "w"))
 
         def cycles(samples):
             out = os.path.join(tmp, f"cycles{samples}.exr")
             o = subprocess.run(
                 [args.blender, "-b", "--factory-startup", "--python-use-system-env", "--python",
                  os.path.join(ROOT, "benches/cycles_render.py"), "--", out, str(args.frame),
-                 str(width), str(height), str(samples), str(args.threads), *gltfs],
+                 str(width), str(height), str(samples), str(args.threads), layers_json],
                 env=env, capture_output=True, text=True)
             line = next((l for l in o.stdout.splitlines() if l.startswith("ANCHORAGE: ")), None)
             if o.returncode != 0 or line is None:

@@ -1,9 +1,12 @@
 """Renders one frame of a glTF scene with Blender's Cycles, for benches/cycles.py: run as
 
     blender -b --factory-startup --python benches/cycles_render.py -- \
-        OUT.exr FRAME WIDTH HEIGHT SAMPLES THREADS SCENE.gltf [SCENE2.gltf ...]
+        OUT.exr FRAME WIDTH HEIGHT SAMPLES THREADS LAYERS.json
 
-Imports the glTF files (the first camera found becomes the scene camera), renders FRAME on
+LAYERS.json is a list of `{"path": SCENE.gltf, "matrix": M}`, M the layer's transform (a
+job's `transform`, 16 numbers, row-major, in glTF's Y-up space) or null. Imports the glTF
+files, each under an empty that carries its transform (so that animated nodes keep their
+animation, relative to it; the first camera found becomes the scene camera), renders FRAME on
 the CPU with SAMPLES samples per pixel (no adaptive sampling, no denoiser, a fixed seed) and
 writes a multilayer EXR with the Combined pass and the diffuse and glossy indirect light and
 colour passes. Prints `ANCHORAGE: {"seconds": S}` with the render's own time (scene import
@@ -15,15 +18,28 @@ import sys
 import time
 
 import bpy
+import mathutils
 
 args = sys.argv[sys.argv.index("--") + 1 :]
 out, frame, width, height, samples, threads = args[:6]
-files = args[6:]
+layers = json.load(open(args[6]))
 
 for obj in list(bpy.data.objects):
     bpy.data.objects.remove(obj, do_unlink=True)
-for f in files:
-    bpy.ops.import_scene.gltf(filepath=f)
+# glTF's Y-up axes to Blender's Z-up ones, as the importer converts them.
+Y_UP = mathutils.Matrix(((1, 0, 0, 0), (0, 0, -1, 0), (0, 1, 0, 0), (0, 0, 0, 1)))
+for layer in layers:
+    before = set(bpy.data.objects)
+    bpy.ops.import_scene.gltf(filepath=layer["path"])
+    roots = [obj for obj in set(bpy.data.objects) - before if obj.parent is None]
+    if layer.get("matrix") is None:
+        continue
+    m = layer["matrix"]
+    empty = bpy.data.objects.new("layer transform", None)
+    bpy.context.scene.collection.objects.link(empty)
+    empty.matrix_world = Y_UP @ mathutils.Matrix([m[4 * r:4 * r + 4] for r in range(4)]) @ Y_UP.inverted()
+    for obj in sorted(roots, key=lambda o: o.name):
+        obj.parent = empty
 
 scene = bpy.context.scene
 cameras = [o for o in scene.objects if o.type == "CAMERA"]

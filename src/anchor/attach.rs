@@ -83,9 +83,13 @@ impl Attacher<'_> {
         let albedo = sp.albedo(self.m);
         let x = sp.position;
         // §3.3.2: the nearest photon's anchor, if it has one.
-        let photon = self.pm.nearest(x).filter(|&i| {
-            (self.pm.photons[i].position - x).length() <= self.params.photon_radius * self.scale
-        });
+        // (The search radius has a margin over the test's, which decides, so that the
+        // photon found is the one an unbounded search would find and test.)
+        let radius = self.params.photon_radius * self.scale;
+        let photon = self
+            .pm
+            .nearest_within(x, radius * (1.0 + 1e-5))
+            .filter(|&i| (self.pm.photons[i].position - x).length() <= radius);
         let linked = photon.and_then(|ph| set.photon_links[ph]);
         // §3.3.1: D_max, constant or scaled by the importons.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));
@@ -111,10 +115,9 @@ impl Attacher<'_> {
             return search;
         }
         // §3.3.1: the nearest anchors within D_max; three rejections create a new one.
-        let anchors = &set.anchors;
-        let (candidates, visited) = set
-            .tree
-            .search(x, d_max, 3, |i| anchors[i as usize].is_live());
+        // The tree holds live anchors only (they die only in `AnchorSet::collect`, which
+        // rebuilds it from the live ones).
+        let (candidates, visited) = set.tree.search(x, d_max, 3, |_| true);
         search.visited = visited;
         search.found = candidates
             .iter()

@@ -98,6 +98,14 @@ impl KdTree {
         Ok(())
     }
 
+    /// The items in the tree, leaf by leaf.
+    pub fn items(&self) -> impl Iterator<Item = u32> + '_ {
+        self.len
+            .iter()
+            .enumerate()
+            .flat_map(|(l, &n)| self.items[l * BUCKET..][..n as usize].iter().copied())
+    }
+
     /// Points in the tree.
     pub fn len(&self) -> usize {
         self.len.iter().map(|&l| l as usize).sum()

@@ -154,6 +154,14 @@ impl AnchorSet {
             return Err("a photon links to an anchor that does not exist".into());
         }
         self.tree.check(n)?;
+        // Searches take the tree's anchors as live (`attach`).
+        if self
+            .tree
+            .items()
+            .any(|i| !self.anchors[i as usize].is_live())
+        {
+            return Err("the anchor kd-tree holds a free anchor slot".into());
+        }
         self.previous_photons.check()
     }
 

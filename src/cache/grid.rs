@@ -13,21 +13,30 @@ pub(super) struct RecordGrid {
     /// Ward's a the grid was built for.
     pub(super) error: f32,
     cells: rustc_hash::FxHashMap<(i32, i32, i32, i32), Vec<u32>>,
-    levels: std::collections::BTreeSet<i32>,
+    /// The levels in use, in order, with their cell sizes.
+    levels: Vec<(i32, f32)>,
 }
 
 /// Lookups may relax Ward's threshold up to this factor (the shading fallback uses 2).
 pub(super) const REACH: f32 = 2.0;
 
 impl RecordGrid {
-    fn cell(&self, level: i32, p: Vec3) -> (i32, i32, i32, i32) {
-        let size = self.base * 2f32.powi(level);
+    fn size(&self, level: i32) -> f32 {
+        self.base * 2f32.powi(level)
+    }
+
+    fn cell_of_size(level: i32, size: f32, p: Vec3) -> (i32, i32, i32, i32) {
         let c = (p / size).floor();
         (level, c.x as i32, c.y as i32, c.z as i32)
     }
 
-    /// Adds record `i` at `position` with validity radius `radius` (its R_i).
-    pub(super) fn insert(&mut self, i: u32, position: Vec3, radius: f32) {
+    fn cell(&self, level: i32, p: Vec3) -> (i32, i32, i32, i32) {
+        Self::cell_of_size(level, self.size(level), p)
+    }
+
+    /// The level and the range of cells (inclusive) of a sphere at `position` of validity
+    /// radius `radius`.
+    fn span(&mut self, position: Vec3, radius: f32) -> (i32, [i32; 3], [i32; 3]) {
         let a = if self.error > 0.0 { self.error } else { 1.0 };
         let reach = REACH * a * radius;
         if self.base == 0.0 {
@@ -38,14 +47,66 @@ impl RecordGrid {
             self.cell(level, position - reach),
             self.cell(level, position + reach),
         );
-        for x in lo.1..=hi.1 {
-            for y in lo.2..=hi.2 {
-                for z in lo.3..=hi.3 {
-                    self.cells.entry((level, x, y, z)).or_default().push(i);
+        (level, [lo.1, lo.2, lo.3], [hi.1, hi.2, hi.3])
+    }
+
+    /// Calls `f` with every cell of a sphere's span.
+    fn for_cells(
+        &mut self,
+        position: Vec3,
+        radius: f32,
+        mut f: impl FnMut(&mut Self, (i32, i32, i32, i32)),
+    ) {
+        let (level, lo, hi) = self.span(position, radius);
+        for x in lo[0]..=hi[0] {
+            for y in lo[1]..=hi[1] {
+                for z in lo[2]..=hi[2] {
+                    f(self, (level, x, y, z));
                 }
             }
         }
-        self.levels.insert(level);
+        if let Err(at) = self.levels.binary_search_by_key(&level, |l| l.0) {
+            self.levels.insert(at, (level, self.size(level)));
+        }
+    }
+
+    /// Adds record `i` at `position` with validity radius `radius` (its R_i), after the
+    /// records already in its cells (a grid filled in index order keeps each cell in it).
+    pub(super) fn insert(&mut self, i: u32, position: Vec3, radius: f32) {
+        self.for_cells(position, radius, |g, c| {
+            g.cells.entry(c).or_default().push(i)
+        });
+    }
+
+    /// Adds record `i` like [`RecordGrid::insert`], at its place in index order in each
+    /// cell.
+    pub(super) fn insert_sorted(&mut self, i: u32, position: Vec3, radius: f32) {
+        self.for_cells(position, radius, |g, c| {
+            let list = g.cells.entry(c).or_default();
+            let at = list.partition_point(|&j| j < i);
+            list.insert(at, i);
+        });
+    }
+
+    /// Renumbers the records after some were removed: `map[i]` is record i's new index,
+    /// or `u32::MAX` where it was removed (new indices in the order of the old ones, so
+    /// cells stay in index order).
+    pub(super) fn renumber(&mut self, map: &[u32]) {
+        for list in self.cells.values_mut() {
+            list.retain_mut(|i| {
+                *i = map[*i as usize];
+                *i != u32::MAX
+            });
+        }
+    }
+
+    /// Removes record `i`, inserted at `position` with radius `radius`, from its cells.
+    pub(super) fn remove(&mut self, i: u32, position: Vec3, radius: f32) {
+        self.for_cells(position, radius, |g, c| {
+            if let Some(list) = g.cells.get_mut(&c) {
+                list.retain(|&j| j != i);
+            }
+        });
     }
 
     /// Calls `f` with the records whose sphere may contain `x` (level by level, each
@@ -57,8 +118,8 @@ impl RecordGrid {
         }
         let fill = |out: &mut Vec<u32>| {
             out.clear();
-            for &l in &self.levels {
-                if let Some(c) = self.cells.get(&self.cell(l, x)) {
+            for &(l, size) in &self.levels {
+                if let Some(c) = self.cells.get(&Self::cell_of_size(l, size, x)) {
                     out.extend_from_slice(c);
                 }
             }

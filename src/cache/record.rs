@@ -300,7 +300,18 @@ fn gradients(
     let mut gr = [Vec3::ZERO; 3];
     let mut gt = [Vec3::ZERO; 3];
     let idx = |j: u32, k: u32| (j * nn + (k % nn)) as usize;
-    let dist = |i: usize| strata[i].distance(scale);
+    let distances: Vec<f32> = strata.iter().map(|s| s.distance(scale)).collect();
+    let dist = |i: usize| distances[i];
+    // Per ring j: tan θ at its centre, sin θ at its lower and upper edges.
+    let rings: Vec<[f32; 3]> = (0..m)
+        .map(|j| {
+            let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
+            let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+            let sin_m = (j as f32 / m as f32).sqrt();
+            let sin_p = ((j + 1) as f32 / m as f32).sqrt();
+            [tan_c, sin_m, sin_p]
+        })
+        .collect();
     for k in 0..nn {
         let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
         let phi_m = 2.0 * PI * k as f32 / nn as f32;
@@ -312,11 +323,8 @@ fn gradients(
         let mut phi_term = Vec3::ZERO;
         for j in 0..m {
             let s = idx(j, k);
-            let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
-            let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+            let [tan_c, sin_m, sin_p] = rings[j as usize];
             rot -= tan_c * radiance[s];
-            let sin_m = (j as f32 / m as f32).sqrt();
-            let sin_p = ((j + 1) as f32 / m as f32).sqrt();
             if j > 0 {
                 let prev = idx(j - 1, k);
                 let r = dist(prev).min(dist(s)).max(r_min);

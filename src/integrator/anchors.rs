@@ -507,35 +507,29 @@ fn update_records(
         .collect();
     let resolved = resolve(att, set, &footprints, hits, Some(&previous));
     let set = &*set;
-    let updated: Vec<_> = cache
-        .records
-        .par_iter()
-        .zip(resolved)
-        .zip(todo)
-        .map(|((r, (new_strata, new_rad)), list)| {
-            let same = list.is_empty()
-                && r.strata.iter().all(|s| {
-                    s.link()
-                        .is_none_or(|a| !changed.get(a.index()).copied().unwrap_or(true))
-                });
-            if same {
-                let mut kept = r.clone();
-                kept.reshot = 0.0;
-                return kept;
-            }
-            let mut strata = r.strata.clone();
-            let mut rad = strata_radiance(set, &strata);
-            for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
-                strata[s as usize] = ns;
-                rad[s as usize] = nr;
-            }
-            let mut new = r.with_strata(strata, &rad, cp, frame);
-            new.reshot = list.len() as f32 / r.strata.len().max(1) as f32;
-            new.dominant_anchor = dominant(&new.strata, &rad);
-            new
-        })
-        .collect();
-    cache.replace_records(updated);
+    let with: Vec<_> = resolved.into_iter().zip(todo).collect();
+    cache.update_each(with, |r, ((new_strata, new_rad), list)| {
+        let same = list.is_empty()
+            && r.strata.iter().all(|s| {
+                s.link()
+                    .is_none_or(|a| !changed.get(a.index()).copied().unwrap_or(true))
+            });
+        if same {
+            r.reshot = 0.0;
+            return;
+        }
+        let mut strata = std::mem::take(&mut r.strata);
+        let mut rad = strata_radiance(set, &strata);
+        for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
+            strata[s as usize] = ns;
+            rad[s as usize] = nr;
+        }
+        let count = strata.len();
+        let mut new = r.with_strata(strata, &rad, cp, frame);
+        new.reshot = list.len() as f32 / count.max(1) as f32;
+        new.dominant_anchor = dominant(&new.strata, &rad);
+        *r = new;
+    });
 }
 
 /// New records where the image needs them (at the camera samples' lookup `samples` too);

@@ -433,6 +433,14 @@ impl PhotonMap {
             .collect()
     }
 
+    /// Index of the photon nearest to `x` within `radius` (and [`PhotonMap::max_radius`]),
+    /// if any: [`PhotonMap::nearest`]'s answer where that lies within `radius`, found
+    /// without searching farther.
+    pub fn nearest_within(&self, x: Vec3, radius: f32) -> Option<usize> {
+        let r = radius.min(self.max_radius);
+        self.tree.nearest_one(x, r * r).map(|nb| nb.1 as usize)
+    }
+
     /// Index of the photon nearest to `x` within [`PhotonMap::max_radius`], if any.
     pub fn nearest(&self, x: Vec3) -> Option<usize> {
         let r2_max = self.max_radius * self.max_radius;
