@@ -506,7 +506,8 @@ fn update_records(
         .map(|(r, list)| list.iter().map(|&s| r.strata[s as usize]).collect())
         .collect();
     let resolved = resolve(att, set, &footprints, hits, Some(&previous));
-    let set = &*set;
+    // Each anchor's radiance, decoded once for the many strata that read it.
+    let radiance: Vec<Vec3> = set.anchors.par_iter().map(|a| a.radiance()).collect();
     let with: Vec<_> = resolved.into_iter().zip(todo).collect();
     cache.update_each(with, |r, ((new_strata, new_rad), list)| {
         let same = list.is_empty()
@@ -519,7 +520,7 @@ fn update_records(
             return;
         }
         let mut strata = std::mem::take(&mut r.strata);
-        let mut rad = strata_radiance(set, &strata);
+        let mut rad = strata_radiance(&radiance, &strata);
         for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
             strata[s as usize] = ns;
             rad[s as usize] = nr;
@@ -558,17 +559,23 @@ fn place_records(
             timings,
         );
     }
-    for r in &mut cache.records[first_new..] {
-        let rad = strata_radiance(set, &r.strata);
+    let set = &*set;
+    cache.records[first_new..].par_iter_mut().for_each(|r| {
+        let rad: Vec<Vec3> = r
+            .strata
+            .iter()
+            .map(|s| s.link().map_or(Vec3::ZERO, |a| set.anchor(a).radiance()))
+            .collect();
         r.dominant_anchor = dominant(&r.strata, &rad);
-    }
+    });
 }
 
-/// The radiance each stratum reads from its anchor (zero where it links none).
-fn strata_radiance(set: &AnchorSet, strata: &[Stratum]) -> Vec<Vec3> {
+/// The radiance each stratum reads from its anchor (zero where it links none), from each
+/// anchor's `radiance`.
+fn strata_radiance(radiance: &[Vec3], strata: &[Stratum]) -> Vec<Vec3> {
     strata
         .iter()
-        .map(|s| s.link().map_or(Vec3::ZERO, |a| set.anchor(a).radiance()))
+        .map(|s| s.link().map_or(Vec3::ZERO, |a| radiance[a.index()]))
         .collect()
 }
 

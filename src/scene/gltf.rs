@@ -32,6 +32,17 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_specular",
 ];
 
+/// The roughness from which the cached methods light a glossy lobe from the irradiance
+/// cache through its albedo at their default settings (`method.glossy_max_roughness`).
+const ROUGH_GLOSSY: f32 = 0.6;
+
+/// What a rough metal's warning says: its reflection is shaded by an approximation whose
+/// error `README.md` measures (§ "What is modelled").
+const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed) light \
+     glossy lobes this rough from the irradiance cache through their albedo, exact only for \
+     light arriving evenly from all directions (on Sponza in white rough metal this loses \
+     about 15 % of the indirect light against the path tracer)";
+
 /// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out
 /// (deterministic, noise-free), with a warning per material.
 pub const BLEND_CUTOFF: f32 = 0.5;
@@ -98,6 +109,18 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
         );
     }
     let (meshes, degenerate_triangles) = r.meshes(&materials)?;
+    let unset = r
+        .doc
+        .meshes()
+        .flat_map(|m| m.primitives())
+        .filter(|p| p.material().index().is_none())
+        .count();
+    if unset > 0 {
+        r.warn(format_args!(
+            "{unset} primitive(s) have no material: glTF's default applies, a white metal of \
+             roughness 1; {ROUGH_METAL}"
+        ));
+    }
     let skins = r.skins();
     let lights = r.lights()?;
     let cameras = r.cameras()?;
@@ -467,6 +490,11 @@ impl<'a> Reader<'a> {
                     format!("{v} is outside [0, 1]"),
                 ));
             }
+        }
+        if metallic >= 0.5 && roughness >= ROUGH_GLOSSY && metallic_roughness_texture.is_none() {
+            self.warn(format_args!(
+                "{at}: a metal of roughness {roughness}; {ROUGH_METAL}"
+            ));
         }
         let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
         if !emission.is_finite() || emission.min_element() < 0.0 {

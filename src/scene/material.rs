@@ -171,7 +171,8 @@ pub struct Material {
 }
 
 impl Default for Material {
-    /// glTF's default material: white, fully rough, non-metallic, single-sided.
+    /// glTF's default material: white, fully rough, fully metallic (the specification's
+    /// defaults for `roughnessFactor` and `metallicFactor`), single-sided.
     fn default() -> Self {
         Material {
             name: "default".into(),

@@ -311,6 +311,52 @@ fn alpha_blend_renders_as_a_cut_out_with_a_warning() {
     assert!(blend[0].contains("\"leaves\""), "{blend:?}");
 }
 
+/// Rough metals, whose reflection the cached methods shade from the irradiance cache
+/// through its albedo (README, "What is modelled"), are warned about by name, and so are
+/// primitives without a material (glTF's default is a white metal of roughness 1); a rough
+/// dielectric, a smoother metal and a metal whose roughness comes from a texture are not.
+#[test]
+fn rough_metals_and_missing_materials_are_warned_about() {
+    let dir = tempdir();
+    let mut g = Gltf::default();
+    let mut prims = Vec::new();
+    for m in 0..4 {
+        let (c, uv) = flat_quad(m as f32, [-1.0, 1.0], [-1.0, 1.0], true);
+        prims.push(g.quad(c, uv, m, ""));
+    }
+    let (c, uv) = flat_quad(5.0, [-1.0, 1.0], [-1.0, 1.0], true);
+    prims.push(g.quad(c, uv, 0, "").replace(r#","material":0"#, ""));
+    let img = g.png(1, 1, &[0, 255, 255, 255]);
+    let body = format!(
+        r#"{},"scenes":[{{"nodes":[0,1]}}],
+        "nodes":[{{"mesh":0}},{}],
+        "meshes":[{{"primitives":[{}]}}],
+        "materials":[{{"name":"steel","pbrMetallicRoughness":{{"metallicFactor":1,"roughnessFactor":0.8}}}},
+                     {{"name":"paint","pbrMetallicRoughness":{{"metallicFactor":0,"roughnessFactor":1}}}},
+                     {{"name":"chrome","pbrMetallicRoughness":{{"metallicFactor":1,"roughnessFactor":0.3}}}},
+                     {{"name":"mapped","pbrMetallicRoughness":{{"metallicFactor":1,"metallicRoughnessTexture":{{"index":0}}}}}}],
+        "textures":[{{"source":{img}}}]"#,
+        sun_light(3.0),
+        sun_node(PI / 4.0),
+        prims.join(",")
+    );
+    let job = job(dir.path(), "metals.gltf", g.finish(&body), "direct", 8);
+    let warnings = job.load_scene().unwrap().warnings();
+    let rough: Vec<&String> = warnings
+        .iter()
+        .filter(|w| w.contains("irradiance cache through their albedo"))
+        .collect();
+    assert_eq!(rough.len(), 2, "{warnings:?}");
+    assert!(
+        rough[0].contains("\"steel\"") && rough[0].contains("roughness 0.8"),
+        "{rough:?}"
+    );
+    assert!(
+        rough[1].contains("1 primitive(s) have no material"),
+        "{rough:?}"
+    );
+}
+
 /// Photons pass through the cut-out half and stop on the opaque one: of the photons' first
 /// hits (straight from the sun), none lies on the cut-out half, none on the floor in the
 /// opaque half's shadow, and many on the floor lit through the cut-out.
