@@ -46,6 +46,10 @@ use crate::geom::basis;
 /// Smallest roughness (glTF `roughnessFactor`) rendered: α = 1e-3.
 pub const MIN_ROUGHNESS: f32 = 0.031_622_78;
 
+/// The roughness from which the cached methods light a glossy lobe from the irradiance
+/// cache through its directional albedo, by default (`method.glossy_max_roughness`).
+pub const CACHE_LIT_ROUGHNESS: f32 = 0.6;
+
 /// Reflectance of a dielectric of ior 1.5 at normal incidence, the glTF default.
 const DIELECTRIC_F0: f32 = 0.04;
 

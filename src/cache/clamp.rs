@@ -69,13 +69,7 @@ impl IrradianceCache {
             }
             return;
         }
-        let a = self.clamp_error();
-        // What the pass reads of each record, side by side in memory.
-        let points: Vec<(Vec3, Vec3, f32)> = self
-            .records
-            .iter()
-            .map(|r| (r.position, r.normal, r.radius))
-            .collect();
+        let points = self.clamp_points();
         // The records before `first` keep the radii the records before them gave them
         // (more records can only lower a radius); the pass adds the caps of the pairs
         // with a new record: new j (the grid of Ward's radii finds the records whose
@@ -88,37 +82,18 @@ impl IrradianceCache {
                 fresh.insert(i as u32, p.0, p.2);
             }
         }
-        let start = || {
-            self.records
-                .iter()
-                .enumerate()
-                .map(|(i, r)| if i < first { r.reach_radius } else { r.radius })
-                .collect::<Vec<f32>>()
-        };
-        let reach = (0..points.len())
-            .into_par_iter()
-            .with_min_len(1024)
-            .filter(|&j| !self.records[j].enclosed)
-            .fold(start, |mut reach, j| {
-                let xj = points[j].0;
-                let grid = if j >= first { &self.ward } else { &fresh };
-                grid.with_candidates(xj, |idx| {
-                    for &i in idx {
-                        if i as usize != j
-                            && let Some(cap) = clamp_cap(points[i as usize], points[j], slope, a)
-                        {
-                            reach[i as usize] = reach[i as usize].min(cap);
-                        }
-                    }
-                });
-                reach
-            })
-            .reduce(start, |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x = x.min(y);
-                }
-                a
-            });
+        let start: Vec<f32> = self
+            .records
+            .iter()
+            .enumerate()
+            .map(|(i, r)| if i < first { r.reach_radius } else { r.radius })
+            .collect();
+        let reach = self.lowest_caps(
+            &points,
+            start,
+            |j| if j >= first { &self.ward } else { &fresh },
+            |i| Some(i as usize),
+        );
         for (r, reach) in self.records.iter_mut().zip(reach) {
             r.reach_radius = reach;
         }
@@ -140,13 +115,11 @@ impl IrradianceCache {
         let mut affected: Vec<u32> = changed.iter().map(|&j| j as u32).collect();
         if self.neighbour_clamp > 0.0 {
             for &j in changed {
-                let r = &self.records[j];
-                let now = (r.position, r.normal, r.radius, r.enclosed);
-                let was = (r.position, r.normal, old[j].radius, old[j].enclosed);
-                for i in self.within_reach_of(r.position) {
+                let now = Placed::of(&self.records[j]);
+                for i in self.within_reach_of(now.position) {
                     if i as usize != j
                         && changed.binary_search(&(i as usize)).is_err()
-                        && self.cap_changed(i as usize, was, Some(now))
+                        && self.cap_changed(i as usize, &old[j], Some(&now))
                     {
                         affected.push(i);
                     }
@@ -157,24 +130,18 @@ impl IrradianceCache {
     }
 
     /// Record i's clamped radius after the cap a neighbour puts on it changed from what
-    /// the neighbour `was` to what it is `now` (None: removed; each is position, normal,
-    /// Ward radius, enclosed): lowered to the new cap where that is lower; true where the
-    /// old cap was the radius i had and the new one is higher or gone, so that only a pass
-    /// over all of i's neighbours can tell its radius.
-    fn cap_changed(
-        &mut self,
-        i: usize,
-        was: (Vec3, Vec3, f32, bool),
-        now: Option<(Vec3, Vec3, f32, bool)>,
-    ) -> bool {
+    /// the neighbour `was` to what it is `now` (None: removed): lowered to the new cap
+    /// where that is lower; true where the old cap was the radius i had and the new one is
+    /// higher or gone, so that only a pass over all of i's neighbours can tell its radius.
+    fn cap_changed(&mut self, i: usize, was: &Placed, now: Option<&Placed>) -> bool {
         let (slope, a) = (self.neighbour_clamp, self.clamp_error());
         let r = &self.records[i];
         let pi = (r.position, r.normal, r.radius);
-        let cap = |(x, n, rj, enclosed): (Vec3, Vec3, f32, bool)| {
-            if enclosed {
+        let cap = |j: &Placed| {
+            if j.enclosed {
                 None
             } else {
-                clamp_cap(pi, (x, n, rj), slope, a)
+                clamp_cap(pi, (j.position, j.normal, j.radius), slope, a)
             }
         };
         let (before, after) = (cap(was), now.and_then(cap));
@@ -191,6 +158,59 @@ impl IrradianceCache {
             *reach = n;
         }
         false
+    }
+
+    /// Per slot, the lowest of `start` and the caps (`clamp_cap`) every record j that is
+    /// not enclosed puts on the records `grid(j)` finds at x_j and `slot` gives a slot
+    /// (`points`: each record's position, normal and Ward radius). The minimum does not
+    /// depend on the order, so neither on the thread count.
+    fn lowest_caps<'g>(
+        &'g self,
+        points: &[(Vec3, Vec3, f32)],
+        start: Vec<f32>,
+        grid: impl Fn(usize) -> &'g RecordGrid + Sync,
+        slot: impl Fn(u32) -> Option<usize> + Sync,
+    ) -> Vec<f32> {
+        let (slope, a) = (self.neighbour_clamp, self.clamp_error());
+        (0..points.len())
+            .into_par_iter()
+            .with_min_len(1024)
+            .filter(|&j| !self.records[j].enclosed)
+            .fold(
+                || start.clone(),
+                |mut reach, j| {
+                    grid(j).with_candidates(points[j].0, |idx| {
+                        for &i in idx {
+                            if i as usize != j
+                                && let Some(cap) =
+                                    clamp_cap(points[i as usize], points[j], slope, a)
+                                && let Some(k) = slot(i)
+                            {
+                                reach[k] = reach[k].min(cap);
+                            }
+                        }
+                    });
+                    reach
+                },
+            )
+            .reduce(
+                || start.clone(),
+                |mut a, b| {
+                    for (x, y) in a.iter_mut().zip(b) {
+                        *x = x.min(y);
+                    }
+                    a
+                },
+            )
+    }
+
+    /// What clamping reads of each record, side by side in memory: position, normal and
+    /// Ward's radius.
+    fn clamp_points(&self) -> Vec<(Vec3, Vec3, f32)> {
+        self.records
+            .iter()
+            .map(|r| (r.position, r.normal, r.radius))
+            .collect()
     }
 
     /// Ward's a as the grids use it.
@@ -222,17 +242,12 @@ impl IrradianceCache {
     /// reach grew past their cells of the lookup grid.
     fn clamp_again(&mut self, mut affected: Vec<u32>) {
         let slope = self.neighbour_clamp;
-        let a = self.clamp_error();
         affected.sort_unstable();
         affected.dedup();
-        let points: Vec<(Vec3, Vec3, f32)> = self
-            .records
-            .iter()
-            .map(|r| (r.position, r.normal, r.radius))
-            .collect();
-        let start = || -> Vec<f32> { affected.iter().map(|&i| points[i as usize].2).collect() };
+        let points = self.clamp_points();
+        let start: Vec<f32> = affected.iter().map(|&i| points[i as usize].2).collect();
         let reach = if slope <= 0.0 {
-            start()
+            start
         } else {
             // The affected records by their spheres, to meet them from every record j.
             let mut spheres = RecordGrid::default();
@@ -240,30 +255,12 @@ impl IrradianceCache {
             for &i in &affected {
                 spheres.insert(i, points[i as usize].0, points[i as usize].2);
             }
-            (0..points.len())
-                .into_par_iter()
-                .with_min_len(1024)
-                .filter(|&j| !self.records[j].enclosed)
-                .fold(start, |mut reach, j| {
-                    spheres.with_candidates(points[j].0, |idx| {
-                        for &i in idx {
-                            if i as usize != j
-                                && let Some(cap) =
-                                    clamp_cap(points[i as usize], points[j], slope, a)
-                                && let Ok(k) = affected.binary_search(&i)
-                            {
-                                reach[k] = reach[k].min(cap);
-                            }
-                        }
-                    });
-                    reach
-                })
-                .reduce(start, |mut a, b| {
-                    for (x, y) in a.iter_mut().zip(b) {
-                        *x = x.min(y);
-                    }
-                    a
-                })
+            self.lowest_caps(
+                &points,
+                start,
+                |_| &spheres,
+                |i| affected.binary_search(&i).ok(),
+            )
         };
         for (&i, reach) in affected.iter().zip(reach) {
             let i = i as usize;
@@ -297,10 +294,9 @@ impl IrradianceCache {
         let mut affected = Vec::new();
         if self.neighbour_clamp > 0.0 {
             for j in (0..keep.len()).filter(|&j| !keep[j]) {
-                let r = &self.records[j];
-                let was = (r.position, r.normal, r.radius, r.enclosed);
-                for i in self.within_reach_of(r.position) {
-                    if keep[i as usize] && self.cap_changed(i as usize, was, None) {
+                let was = Placed::of(&self.records[j]);
+                for i in self.within_reach_of(was.position) {
+                    if keep[i as usize] && self.cap_changed(i as usize, &was, None) {
                         affected.push(i);
                     }
                 }

@@ -50,13 +50,13 @@ impl RecordGrid {
         (level, [lo.1, lo.2, lo.3], [hi.1, hi.2, hi.3])
     }
 
-    /// Calls `f` with every cell of a sphere's span.
+    /// Calls `f` with every cell of a sphere's span; returns the span's level.
     fn for_cells(
         &mut self,
         position: Vec3,
         radius: f32,
         mut f: impl FnMut(&mut Self, (i32, i32, i32, i32)),
-    ) {
+    ) -> i32 {
         let (level, lo, hi) = self.span(position, radius);
         for x in lo[0]..=hi[0] {
             for y in lo[1]..=hi[1] {
@@ -65,6 +65,13 @@ impl RecordGrid {
                 }
             }
         }
+        level
+    }
+
+    /// Adds record `i` at `position` with validity radius `radius` (its R_i) to its cells,
+    /// `at` choosing its place in each cell's list, and its level to the ones lookups read.
+    fn add(&mut self, position: Vec3, radius: f32, at: impl Fn(&mut Vec<u32>)) {
+        let level = self.for_cells(position, radius, |g, c| at(g.cells.entry(c).or_default()));
         if let Err(at) = self.levels.binary_search_by_key(&level, |l| l.0) {
             self.levels.insert(at, (level, self.size(level)));
         }
@@ -73,16 +80,13 @@ impl RecordGrid {
     /// Adds record `i` at `position` with validity radius `radius` (its R_i), after the
     /// records already in its cells (a grid filled in index order keeps each cell in it).
     pub(super) fn insert(&mut self, i: u32, position: Vec3, radius: f32) {
-        self.for_cells(position, radius, |g, c| {
-            g.cells.entry(c).or_default().push(i)
-        });
+        self.add(position, radius, |list| list.push(i));
     }
 
     /// Adds record `i` like [`RecordGrid::insert`], at its place in index order in each
     /// cell.
     pub(super) fn insert_sorted(&mut self, i: u32, position: Vec3, radius: f32) {
-        self.for_cells(position, radius, |g, c| {
-            let list = g.cells.entry(c).or_default();
+        self.add(position, radius, |list| {
             let at = list.partition_point(|&j| j < i);
             list.insert(at, i);
         });

@@ -481,7 +481,7 @@ impl Default for GlossyParams {
             mode: GlossyMode::Bucketing,
             rays: 2,
             specular_max_roughness: 0.35,
-            max_roughness: 0.6,
+            max_roughness: crate::bsdf::CACHE_LIT_ROUGHNESS,
             bucket: BucketParams::default(),
         }
     }

@@ -32,10 +32,6 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_specular",
 ];
 
-/// The roughness from which the cached methods light a glossy lobe from the irradiance
-/// cache through its albedo at their default settings (`method.glossy_max_roughness`).
-const ROUGH_GLOSSY: f32 = 0.6;
-
 /// What a rough metal's warning says: its reflection is shaded by an approximation whose
 /// error `README.md` measures (§ "What is modelled").
 const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed) light \
@@ -491,7 +487,10 @@ impl<'a> Reader<'a> {
                 ));
             }
         }
-        if metallic >= 0.5 && roughness >= ROUGH_GLOSSY && metallic_roughness_texture.is_none() {
+        if metallic >= 0.5
+            && roughness >= crate::bsdf::CACHE_LIT_ROUGHNESS
+            && metallic_roughness_texture.is_none()
+        {
             self.warn(format_args!(
                 "{at}: a metal of roughness {roughness}; {ROUGH_METAL}"
             ));
