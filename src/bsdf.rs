@@ -379,6 +379,8 @@ const TABLE_SAMPLES: usize = 32;
 pub struct Tables {
     spec: Vec<[f32; 2]>,
     mean_spec: [[f32; 2]; TABLE],
+    /// Per node, the glossy lobe's moments ([`Tables::glossy_moments`]) for A and B.
+    moments: Vec<[[f32; 7]; 2]>,
 }
 
 fn node(i: usize) -> f32 {
@@ -396,6 +398,7 @@ impl Tables {
     fn build() -> Tables {
         let n = TABLE_SAMPLES;
         let mut spec = vec![[0.0f32; 2]; TABLE * TABLE];
+        let mut moments = vec![[[0.0f32; 7]; 2]; TABLE * TABLE];
         for i in 0..TABLE {
             let mu = node(i).max(0.01);
             let wo = Vec3::new((1.0 - mu * mu).sqrt(), 0.0, mu);
@@ -403,6 +406,7 @@ impl Tables {
                 let r = node(j).max(MIN_ROUGHNESS);
                 let alpha = r * r;
                 let (mut sa, mut sb) = (0.0f64, 0.0f64);
+                let (mut ma, mut mb) = ([0.0f64; 7], [0.0f64; 7]);
                 for a in 0..n {
                     for b in 0..n {
                         let (u1, u2) = ((a as f32 + 0.5) / n as f32, (b as f32 + 0.5) / n as f32);
@@ -416,10 +420,17 @@ impl Tables {
                         let x = schlick_weight(wo.dot(m));
                         sa += ((1.0 - x) * w) as f64;
                         sb += (x * w) as f64;
+                        let (dx, dy, dz) = (wi.x as f64, wi.y as f64, wi.z as f64);
+                        let p = [1.0, dx, dz, dx * dz, dx * dx, dy * dy, dz * dz];
+                        for (k, p) in p.iter().enumerate() {
+                            ma[k] += ((1.0 - x) * w) as f64 * p;
+                            mb[k] += (x * w) as f64 * p;
+                        }
                     }
                 }
                 let k = (n * n) as f64;
                 spec[i * TABLE + j] = [(sa / k) as f32, (sb / k) as f32];
+                moments[i * TABLE + j] = [ma.map(|v| (v / k) as f32), mb.map(|v| (v / k) as f32)];
             }
         }
         // Cosine-weighted means over μ: 2∫ g(μ) μ dμ by the trapezoidal rule.
@@ -436,7 +447,32 @@ impl Tables {
                 m[1] += b * weight(i);
             }
         }
-        Tables { spec, mean_spec }
+        Tables {
+            spec,
+            mean_spec,
+            moments,
+        }
+    }
+
+    /// The glossy lobe's moments at `μ`, roughness `r`, in the frame of the outgoing
+    /// direction (normal z, `wo` in the xz-plane towards +x): `∫ w·cos θi·p(ωi) dωi` for
+    /// `p` in `[1, x, z, xz, x², y², z²]`, with `w = (1 − x_s)·D·V` for A and `x_s·D·V` for B
+    /// (`x_s` the Schlick weight), so that the lobe of f0, f90 reflects `f0·(A·c) + f90·(B·c)`
+    /// of a radiance `c·p` ([`crate::cache::directional`]). The moments of y, xy and yz
+    /// vanish by symmetry. The first entries are [`Tables::specular`]'s A and B.
+    pub fn glossy_moments(&self, mu: f32, roughness: f32) -> [[f32; 7]; 2] {
+        let (i, s) = locate(mu);
+        let (j, t) = locate(roughness);
+        let at = |i: usize, j: usize| &self.moments[i * TABLE + j];
+        let w = [
+            (at(i, j), (1.0 - s) * (1.0 - t)),
+            (at(i, j + 1), (1.0 - s) * t),
+            (at(i + 1, j), s * (1.0 - t)),
+            (at(i + 1, j + 1), s * t),
+        ];
+        std::array::from_fn(|l| {
+            std::array::from_fn(|k| w.iter().map(|(m, w)| m[l][k] * w).sum::<f32>())
+        })
     }
 
     /// `(A, B)` at `μ`, roughness `r`.

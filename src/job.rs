@@ -344,8 +344,8 @@ pub struct MethodSettings {
     #[schemars(range(min = 0, max = 0.75))]
     pub glossy_specular_max_roughness: Option<f32>,
     /// Cached methods: lobes narrower than this roughness gather their indirect light at the
-    /// pixel; wider ones are shaded from the irradiance cache through their albedo; in
-    /// [0, 0.75]. Default 0.6.
+    /// pixel; wider ones are shaded from the irradiance cache, by its records' fit of the
+    /// direction their light arrives from; in [0, 0.75]. Default 0.6.
     #[schemars(range(min = 0, max = 0.75))]
     pub glossy_max_roughness: Option<f32>,
     /// `anchors` settings (each key defaults as documented in README.md).

@@ -212,14 +212,16 @@ pub fn stage_exr(path: &Path, img: &FrameImage) -> Result<Staged> {
         AnyChannels::sort(smallvec::SmallVec::from_vec(channels)),
     );
     let image = Image::from_layer(layer);
-    // Single-threaded compression keeps the byte stream independent of scheduling.
-    stage(path, |w| {
-        image
-            .write()
-            .non_parallel()
-            .to_buffered(w)
-            .map_err(|e| e.to_string())
-    })
+    // Blocks are compressed in parallel (on the `exr` crate's own short-lived pool) and
+    // written in increasing line order whatever order they finish in, so the bytes do not
+    // depend on scheduling; with one worker thread asked for, they are compressed in turn.
+    let write = image.write();
+    let write = if rayon::current_num_threads() > 1 {
+        write
+    } else {
+        write.non_parallel()
+    };
+    stage(path, |w| write.to_buffered(w).map_err(|e| e.to_string()))
 }
 
 /// Display transform for previews: clamp, then the sRGB curve.

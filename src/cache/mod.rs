@@ -16,6 +16,7 @@
 //!
 
 mod clamp;
+pub mod directional;
 pub mod gather;
 mod grid;
 pub mod record;

@@ -13,6 +13,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use super::CacheParams;
+use super::directional::Directional;
 use crate::accel::Hit;
 use crate::anchor::AnchorId;
 use crate::geom::{Motion, basis};
@@ -109,6 +110,10 @@ pub struct Record {
     pub error: Vec3,
     pub ng: Vec3,
     pub strata: Vec<Stratum>,
+    /// The incident radiance's direction, fitted to the strata (module
+    /// [`super::directional`]): what lights glossy lobes read from the cache. `None` where
+    /// the strata are too few to fit it.
+    pub directional: Option<Directional>,
     /// Fraction of the strata traced this frame (1 for brute force and new records).
     pub reshot: f32,
     /// The anchor contributing most of the record's irradiance.
@@ -143,6 +148,7 @@ impl Record {
             error: Vec3::ZERO,
             ng: normal,
             strata: Vec::new(),
+            directional: None,
             reshot: 0.0,
             dominant_anchor: None,
             enclosed: false,
@@ -227,6 +233,7 @@ pub fn finish_record(
         footprint,
         error: sp.error,
         ng: sp.ng,
+        directional: Directional::fit(sp.ns, radiance, p.strata),
         strata,
         reshot: 1.0,
         dominant_anchor: None,

@@ -321,7 +321,10 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet) {
 fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (u64, Vec<bool>) {
     let q = set.quantizer;
     let changed = pm.changed_since(&set.previous_photons);
-    let changed_tree = (!changed.is_empty()).then(|| {
+    // Where most photons changed (a light or a material edited, a first frame), nearly
+    // every anchor is reached by one: each is estimated again without the test.
+    let all = changed.len() >= pm.photons.len() / 2;
+    let changed_tree = (!changed.is_empty() && !all).then(|| {
         let pts: Vec<[f32; 3]> = changed.iter().map(|p| p.to_array()).collect();
         kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
     });
@@ -337,12 +340,13 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (
             let x = a.position(&q);
             let r2 = set_ref.reach2(AnchorId(i as u32));
             let untouched = r2.is_finite()
+                && !all
                 && changed_tree.as_ref().is_none_or(|t| {
                     t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
                         .distance
                         > r2
                 });
-            (!untouched).then(|| pm.irradiance_and_radius(x, a.normal(), anchor_k))
+            (!untouched).then(|| pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2))
         })
         .collect();
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();

@@ -24,9 +24,10 @@ use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCo
 use crate::accel::Hit;
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::bsdf::Lobes;
+use crate::cache::directional::Directional;
 use crate::cache::{
-    CacheParams, Contribution, GatherHit, GatherTimings, IrradianceCache, RELAXED, WeberTally,
-    gather,
+    CacheParams, Contribution, GatherHit, GatherTimings, IrradianceCache, RELAXED, Record,
+    WeberTally, gather,
 };
 use crate::geom::Motion;
 use crate::interaction::{Materials, SurfacePoint, trace_camera};
@@ -534,6 +535,31 @@ struct CacheValue {
     irradiance: Vec3,
     anchor_id: u32,
     reshot: f32,
+    /// The incident light's direction, blended from the records like the irradiance (or
+    /// fitted to the gather on the spot): what a cache-lit glossy lobe reflects.
+    directional: Option<Directional>,
+}
+
+impl CacheValue {
+    /// What a glossy lobe lit from the cache reflects towards `wo`: the lobe integrated
+    /// against the directional fit, or, without one, its directional albedo `albedo` times
+    /// the irradiance `e` (already divided by π).
+    fn glossy(&self, bsdf: &crate::bsdf::Bsdf, ns: Vec3, wo: Vec3, albedo: Vec3, e: Vec3) -> Vec3 {
+        self.directional
+            .map_or(albedo * e, |d| d.glossy(bsdf, ns, wo))
+    }
+}
+
+/// The contributing records' directional fits blended with their interpolation weights;
+/// `None` if one of them has none.
+fn blend_directional(parts: &[Contribution], records: &[Record]) -> Option<Directional> {
+    let mut sum = Directional::default();
+    let mut wsum = 0.0f32;
+    for c in parts {
+        sum.add_scaled(records[c.record as usize].directional.as_ref()?, c.weight);
+        wsum += c.weight;
+    }
+    (wsum > 0.0).then(|| sum.scaled(1.0 / wsum))
 }
 
 /// Per-pixel state: the pixel centre's surface and the last interpolation.
@@ -655,6 +681,7 @@ pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
                         irradiance: Vec3::ZERO,
                         anchor_id: 0,
                         reshot: 0.0,
+                        directional: None,
                     };
                     pixel.last = Some((key, sp.ns, none));
                 }
@@ -701,6 +728,7 @@ impl CachedShading<'_> {
                     self.cache.records[i.dominant_record as usize].dominant_anchor,
                 ),
                 reshot: i.reshot,
+                directional: blend_directional(parts, &self.cache.records),
             },
             None => {
                 // Timed apart from interpolation: a final gather and its photon look-ups.
@@ -715,18 +743,22 @@ impl CachedShading<'_> {
                 let t1 = Instant::now();
                 row.uncached_rays += hits.len() as u64;
                 let strata = (self.params.strata[0] * self.params.strata[1]) as f32;
-                let e = hits
+                let radiance: Vec<Vec3> = hits
                     .iter()
-                    .filter_map(|h| h.sp.as_ref())
-                    .map(|sp| self.estimate.radiance(sp, ctx.materials))
-                    .sum::<Vec3>()
-                    * (PI / strata);
+                    .map(|h| {
+                        h.sp.as_ref()
+                            .map_or(Vec3::ZERO, |sp| self.estimate.radiance(sp, ctx.materials))
+                    })
+                    .collect();
+                let e = radiance.iter().sum::<Vec3>() * (PI / strata);
+                let directional = Directional::fit(at.ns, &radiance, self.params.strata);
                 row.t_gather += (t1 - t0).as_secs_f64();
                 row.t_estimate += t1.elapsed().as_secs_f64();
                 CacheValue {
                     irradiance: e,
                     anchor_id: 0,
                     reshot: 1.0,
+                    directional,
                 }
             }
         }
@@ -784,7 +816,7 @@ impl Shade for CachedShading<'_> {
         let a = bsdf.albedo(ns.dot(wo));
         let e = value.irradiance * FRAC_1_PI;
         let glossy = match self.glossy_path(&bsdf) {
-            GlossyPath::Cache => a.glossy * e,
+            GlossyPath::Cache => value.glossy(&bsdf, ns, wo, a.glossy, e),
             GlossyPath::Rays => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
             GlossyPath::Bucket => {
                 let b = match pixel.bucketed {
@@ -807,7 +839,7 @@ impl Shade for CachedShading<'_> {
                     None if self.glossy.rays > 0 => {
                         self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts)
                     }
-                    None => a.glossy * e,
+                    None => value.glossy(&bsdf, ns, wo, a.glossy, e),
                 }
             }
         };

@@ -360,6 +360,30 @@ impl PhotonMap {
             .nearest_within(x, r2_max, k, |found| self.estimate(x, n, k, r2_max, found))
     }
 
+    /// [`PhotonMap::irradiance_and_radius`] searched first within `r2_near` (an earlier
+    /// estimate's reach at the same point): where at least `k` photons lie within it, they
+    /// are the `k` nearest and the result is the same, found without the unbounded search's
+    /// first visits; elsewhere (fewer photons there now) the search runs unbounded.
+    pub fn irradiance_and_radius_near(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        k: usize,
+        r2_near: f32,
+    ) -> (Vec3, f32) {
+        let r2_max = self.max_radius * self.max_radius;
+        let k = k.max(1);
+        if r2_near < r2_max {
+            let near = self.tree.nearest_within(x, r2_near, k, |found| {
+                (found.len() >= k).then(|| self.estimate(x, n, k, r2_max, found))
+            });
+            if let Some(e) = near {
+                return e;
+            }
+        }
+        self.irradiance_and_radius(x, n, k)
+    }
+
     /// The estimate at `x` from the `found` photons (the k nearest within `r2_max`).
     fn estimate(
         &self,

@@ -34,10 +34,11 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
 
 /// What a rough metal's warning says: its reflection is shaded by an approximation whose
 /// error `README.md` measures (§ "What is modelled").
-const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed) light \
-     glossy lobes this rough from the irradiance cache through their albedo, exact only for \
-     light arriving evenly from all directions (on Sponza in white rough metal this loses \
-     about 15 % of the indirect light against the path tracer)";
+const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed) treat \
+     the light such a surface reflects onto others as diffuse (its hemispherical albedo times \
+     its irradiance), and light its own glossy lobe from a fit of the cache's incident light \
+     (Sponza in white metal of roughness 1 reads about 25 % low in indirect light against \
+     the path tracer; the same geometry in a white diffuse material, 11 %)";
 
 /// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out
 /// (deterministic, noise-free), with a warning per material.

@@ -344,7 +344,7 @@ fn rough_metals_and_missing_materials_are_warned_about() {
     let warnings = job.load_scene().unwrap().warnings();
     let rough: Vec<&String> = warnings
         .iter()
-        .filter(|w| w.contains("irradiance cache through their albedo"))
+        .filter(|w| w.contains("reflects onto others as diffuse"))
         .collect();
     assert_eq!(rough.len(), 2, "{warnings:?}");
     assert!(
