@@ -550,6 +550,22 @@ impl CacheValue {
     }
 }
 
+/// What a cache-lit glossy lobe's light depends on besides the surface: the BRDF's
+/// roughness and Fresnel terms (bit patterns: a texture may vary them within a prim).
+type GlossyKey = [u32; 7];
+
+fn glossy_key(b: &crate::bsdf::Bsdf) -> GlossyKey {
+    [
+        b.roughness.to_bits(),
+        b.f0.x.to_bits(),
+        b.f0.y.to_bits(),
+        b.f0.z.to_bits(),
+        b.f90.x.to_bits(),
+        b.f90.y.to_bits(),
+        b.f90.z.to_bits(),
+    ]
+}
+
 /// The contributing records' directional fits blended with their interpolation weights;
 /// `None` if one of them has none.
 fn blend_directional(parts: &[Contribution], records: &[Record]) -> Option<Directional> {
@@ -569,6 +585,10 @@ pub struct CachedPixel {
     last: Option<(SurfaceKey, Vec3, CacheValue)>,
     /// The last bucketed glossy light, by surface.
     bucketed: Option<(SurfaceKey, Vec3, Option<Vec3>)>,
+    /// The last cache-lit glossy light, by surface and BRDF: the pixel's other samples on
+    /// that surface reuse it, as they reuse the interpolation (their outgoing directions
+    /// differ by a fraction of the pixel; the lobe lit this way is rough).
+    glossy: Option<(SurfaceKey, Vec3, GlossyKey, Vec3)>,
     /// Shading: the pixel's bucketing plans not yet used, in the band's plans.
     plans: std::ops::Range<usize>,
 }
@@ -596,6 +616,7 @@ impl CachedPixel {
             centre,
             last: None,
             bucketed: None,
+            glossy: None,
             plans,
         }
     }
@@ -816,7 +837,17 @@ impl Shade for CachedShading<'_> {
         let a = bsdf.albedo(ns.dot(wo));
         let e = value.irradiance * FRAC_1_PI;
         let glossy = match self.glossy_path(&bsdf) {
-            GlossyPath::Cache => value.glossy(&bsdf, ns, wo, a.glossy, e),
+            GlossyPath::Cache => {
+                let gk = glossy_key(&bsdf);
+                match pixel.glossy {
+                    Some((k, n, g, v)) if k == key && g == gk && n.dot(sp.ns) > SAME_FACING => v,
+                    _ => {
+                        let v = value.glossy(&bsdf, ns, wo, a.glossy, e);
+                        pixel.glossy = Some((key, sp.ns, gk, v));
+                        v
+                    }
+                }
+            }
             GlossyPath::Rays => self.glossy_indirect(ctx, hit, &bsdf, ns, &mut row.counts),
             GlossyPath::Bucket => {
                 let b = match pixel.bucketed {
