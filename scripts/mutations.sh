@@ -25,10 +25,11 @@ declare -A TESTS=(
   [lit-back-faces-enclosed]="density::"
   [no-neighbour-clamp]="density::"
   [ray-offsets-shrunk]="offsets::"
+  [glossy-through-albedo]="glossy::a_rough_metal"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
-  ray-offsets-shrunk)
+  ray-offsets-shrunk glossy-through-albedo)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
