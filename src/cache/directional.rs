@@ -36,6 +36,7 @@ use std::rc::Rc;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use super::gather::stratum_direction;
 use crate::bsdf::Bsdf;
 use crate::geom::basis;
 
@@ -63,16 +64,15 @@ fn terms(x: f64, y: f64, z: f64) -> [f64; TERMS] {
     [1.0, x, y, z, x * y, y * z, x * z, x * x, y * y]
 }
 
-/// The weighted least-squares fit matrix for `m × n` cosine-weighted strata (rings of equal
-/// sin²θ, sectors of equal φ, in `cache::gather`'s order), or `None` where the strata are
+/// The weighted least-squares fit matrix for `m × n` cosine-weighted strata, each at its
+/// centre ([`stratum_direction`], in `cache::gather`'s order), or `None` where the strata are
 /// too few to determine nine coefficients.
 fn fit_matrix(m: u32, n: u32) -> Option<FitMatrix> {
     let cell = PI / (m as f64 * n as f64);
     let rows: Vec<([f64; TERMS], f64)> = (0..m * n)
         .map(|s| {
-            let (j, k) = (s / n, s % n);
-            let sin2 = (j as f64 + 0.5) / m as f64;
-            let phi = 2.0 * PI * (k as f64 + 0.5) / n as f64;
+            let (sin2, phi) = stratum_direction(m, n, s / n, s % n, 0.5, 0.5);
+            let (sin2, phi) = (sin2 as f64, phi as f64);
             let (st, z) = (sin2.sqrt(), (1.0 - sin2).sqrt());
             // A stratum's solid angle: its share of the cosine-weighted hemisphere over cos θ.
             (terms(st * phi.cos(), st * phi.sin(), z), cell / z)

@@ -78,7 +78,7 @@ pub struct GatherTimings {
 }
 
 /// Direction of stratum (j, k) with jitter (u, v): cosine-weighted, θ from j, φ from k.
-fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f32) {
+pub(super) fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f32) {
     let sin2 = (j as f32 + u) / m as f32;
     let phi = 2.0 * PI * (k as f32 + v) / n as f32;
     (sin2, phi)
