@@ -36,7 +36,6 @@ use std::rc::Rc;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use super::gather::stratum_direction;
 use crate::bsdf::Bsdf;
 use crate::geom::basis;
 
@@ -62,6 +61,13 @@ thread_local! {
 
 fn terms(x: f64, y: f64, z: f64) -> [f64; TERMS] {
     [1.0, x, y, z, x * y, y * z, x * z, x * x, y * y]
+}
+
+/// Direction of stratum (j, k) with jitter (u, v): cosine-weighted, θ from j, φ from k.
+pub(super) fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f32) {
+    let sin2 = (j as f32 + u) / m as f32;
+    let phi = 2.0 * std::f32::consts::PI * (k as f32 + v) / n as f32;
+    (sin2, phi)
 }
 
 /// The weighted least-squares fit matrix for `m × n` cosine-weighted strata, each at its

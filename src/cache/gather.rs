@@ -2,11 +2,10 @@
 //! depends on the record's id alone, so that a record shoots the same rays every frame, and
 //! the method's resolver that turns the hits into strata and radiance.
 
-use std::f32::consts::PI;
-
 use glam::Vec3;
 use rayon::prelude::*;
 
+use super::directional::stratum_direction;
 use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Stratum};
 use crate::geom::{Motion, basis};
 use crate::interaction::SurfacePoint;
@@ -75,13 +74,6 @@ pub struct GatherTimings {
     /// Estimating radiance at gather hits (photon lookups).
     pub irradiance_estimation: f64,
     pub rays: u64,
-}
-
-/// Direction of stratum (j, k) with jitter (u, v): cosine-weighted, θ from j, φ from k.
-pub(super) fn stratum_direction(m: u32, n: u32, j: u32, k: u32, u: f32, v: f32) -> (f32, f32) {
-    let sin2 = (j as f32 + u) / m as f32;
-    let phi = 2.0 * PI * (k as f32 + v) / n as f32;
-    (sin2, phi)
 }
 
 /// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the jitter
