@@ -78,6 +78,8 @@ pub struct PhotonMap {
     /// path `i` stored `photons[path_start[i]..path_start[i + 1]]`.
     pub path_start: Vec<u32>,
     tree: knn::PointTree,
+    /// `photons` in the tree's order, which look-ups read (the knn module doc).
+    ordered: Vec<Photon>,
     /// Photons emitted (the divisor of every photon's power).
     pub emitted: u32,
     /// Total flux emitted by all lights (luminance-weighted sum is what selection uses).
@@ -292,6 +294,7 @@ impl PhotonMap {
             photons: Vec::new(),
             path_start: Vec::new(),
             tree: knn::PointTree::default(),
+            ordered: Vec::new(),
             emitted: count,
             emitted_power,
             max_radius: max_radius * frame.static_radius(),
@@ -339,6 +342,7 @@ impl PhotonMap {
         }
         let pts: Vec<Vec3> = map.photons.iter().map(|p| p.position).collect();
         map.tree = knn::PointTree::new(&pts);
+        map.ordered = map.tree.in_tree_order(&map.photons);
         map
     }
 
@@ -409,7 +413,7 @@ impl PhotonMap {
         let thickness = DISC_THICKNESS * r;
         let on_disc =
             |p: &Photon| p.normal.dot(n) > 0.5 && (p.position - x).dot(n).abs() <= thickness;
-        let photons = || found.iter().map(|nb| &self.photons[nb.1 as usize]);
+        let photons = || found.iter().map(|nb| &self.ordered[nb.1 as usize]);
         let clip = SurfaceClip::new(x, n, r, photons().filter(|p| !on_disc(p)));
         if clip.lines.is_empty() {
             let sum: Vec3 = photons().filter(|p| on_disc(p)).map(|p| p.power).sum();
