@@ -253,18 +253,111 @@ pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
 /// The surface the camera sees through film position `(x, y)` (in `[0, 1]²`, y down), between
 /// its clip planes, and the camera ray's direction.
 pub fn trace_camera(frame: &FrameScene, x: f32, y: f32) -> (Vec3, Option<SurfacePoint>) {
+    let (dir, _, sp) = camera_hit(frame, x, y, None);
+    (dir, sp)
+}
+
+/// [`trace_camera`], and the hit itself, which a later render of the same view of the same
+/// geometry may pass back as `known` instead of tracing the ray again
+/// ([`crate::integrator::replay`]).
+pub fn camera_hit(
+    frame: &FrameScene,
+    x: f32,
+    y: f32,
+    known: Option<Option<Hit>>,
+) -> (Vec3, Option<Hit>, Option<SurfacePoint>) {
     let r = frame.camera.ray(x, y);
-    let hit = frame
-        .accel
-        .closest(
+    let hit = known.unwrap_or_else(|| {
+        frame.accel.closest(
             &frame.static_geometry,
             &frame.dynamic_geometry,
             r.origin,
             r.dir,
             r.tmax,
         )
-        .map(|h| SurfacePoint::new(frame, h, r.origin, r.dir));
-    (r.dir, hit)
+    });
+    (
+        r.dir,
+        hit,
+        hit.map(|h| SurfacePoint::new(frame, h, r.origin, r.dir)),
+    )
+}
+
+/// A shading point's shadow rays: counted, traced, and logged or answered from a log where
+/// one is kept ([`crate::integrator::replay`]: watch mode's relight, whose geometry is the
+/// logged render's). A logged answer is used only for the ray it was logged for: the ray
+/// cast in the same place of the sequence, with the same origin, direction and length (a
+/// light that moved, or an emitter picked differently, casts other rays, which are traced).
+pub struct ShadowRays<'a> {
+    /// Shadow rays cast, traced or answered from the log.
+    pub cast: &'a mut u64,
+    /// Answers logged by an earlier render, in the order their rays were cast
+    /// ([`ShadowRays::entry`]).
+    known: &'a [u64],
+    next: usize,
+    /// Where this render's answers are logged.
+    log: Option<&'a mut Vec<u64>>,
+}
+
+impl<'a> ShadowRays<'a> {
+    /// Traces every ray, counting them in `cast`.
+    pub fn traced(cast: &'a mut u64) -> Self {
+        ShadowRays {
+            cast,
+            known: &[],
+            next: 0,
+            log: None,
+        }
+    }
+
+    /// Answers from `known` where it holds the same ray, traces the others, and logs every
+    /// answer in `log`.
+    pub fn logged(cast: &'a mut u64, known: &'a [u64], log: Option<&'a mut Vec<u64>>) -> Self {
+        ShadowRays {
+            cast,
+            known,
+            next: 0,
+            log,
+        }
+    }
+
+    /// Whether something blocks the ray `o + t·dir`, `0 < t < tmax`.
+    fn occluded(&mut self, frame: &FrameScene, o: Vec3, dir: Vec3, tmax: f32) -> bool {
+        *self.cast += 1;
+        let trace = || {
+            frame.accel.occluded(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                o,
+                dir,
+                tmax,
+            )
+        };
+        if self.log.is_none() && self.known.is_empty() {
+            return trace();
+        }
+        let key = Self::entry(o, dir, tmax, false);
+        let answer = match self.known.get(self.next) {
+            Some(&e) if e | 1 == key | 1 => e & 1 == 1,
+            _ => trace(),
+        };
+        self.next += 1;
+        if let Some(log) = self.log.as_deref_mut() {
+            log.push(key | u64::from(answer));
+        }
+        answer
+    }
+
+    /// A log entry: a 63-bit hash of the ray's bits (origin, direction, length), the answer
+    /// in the lowest bit. Two different rays share a hash with probability 2⁻⁶³.
+    fn entry(o: Vec3, dir: Vec3, tmax: f32, occluded: bool) -> u64 {
+        let mut h = 0x243f_6a88_85a3_08d3u64;
+        for w in [o.x, o.y, o.z, dir.x, dir.y, dir.z, tmax].map(f32::to_bits) {
+            h = (h ^ u64::from(w)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+            h ^= h >> 29;
+        }
+        (h & !1) | u64::from(occluded)
+    }
 }
 
 /// Light from one punctual light at `x`, shadow ray included (`KHR_lights_punctual`): the
@@ -274,7 +367,7 @@ fn punctual_incident(
     frame: &FrameScene,
     x: &SurfacePoint,
     l: &PunctualLight,
-    shadow_rays: &mut u64,
+    shadow: &mut ShadowRays,
 ) -> Option<(Vec3, Vec3)> {
     let o = x.spawn();
     let (wi, dist, e) = match l.kind {
@@ -301,11 +394,7 @@ fn punctual_incident(
     if x.ns.dot(wi) <= 0.0 || x.ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
         return None;
     }
-    *shadow_rays += 1;
-    if frame
-        .accel
-        .occluded(&frame.static_geometry, &frame.dynamic_geometry, o, wi, dist)
-    {
+    if shadow.occluded(frame, o, wi, dist) {
         return None;
     }
     Some((wi, e))
@@ -363,12 +452,12 @@ pub fn direct_light(
     sampler: &Sampler,
     (index, n, dim): (u32, u32, u32),
     sampling: LightSampling,
-    shadow_rays: &mut u64,
+    shadow: &mut ShadowRays,
 ) -> Lobes {
     let ns = x.shading_normal(wo);
     let mut out = Lobes::ZERO;
     for l in &frame.lights {
-        if let Some((wi, e)) = punctual_incident(frame, x, l, shadow_rays) {
+        if let Some((wi, e)) = punctual_incident(frame, x, l, shadow) {
             out += bsdf.eval(ns, wo, wi).scale(e * ns.dot(wi).max(0.0));
         }
     }
@@ -405,14 +494,7 @@ pub fn direct_light(
         if f.sum() == Vec3::ZERO {
             continue;
         }
-        *shadow_rays += 1;
-        if frame.accel.occluded(
-            &frame.static_geometry,
-            &frame.dynamic_geometry,
-            seg.origin,
-            wi,
-            seg.tmax,
-        ) {
+        if shadow.occluded(frame, seg.origin, wi, seg.tmax) {
             continue;
         }
         // L_e f cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that

@@ -12,6 +12,7 @@ use crate::checkpoint;
 use crate::error::{Error, Result};
 use crate::integrator::cached::{self, CachedMethod, CachedState};
 use crate::integrator::path::PathTracer;
+use crate::integrator::replay::ShadingLog;
 use crate::integrator::{FrameContext, FrameImage, direct, path};
 use crate::interaction::Materials;
 use crate::job::{FrameRange, Job, Method};
@@ -91,10 +92,14 @@ pub fn render_frame(
         frame,
         stats,
         cached::Refresh::default(),
+        None,
     )
 }
 
-/// [`render_frame`] with what watch mode knows about the state ([`cached::Refresh`]).
+/// [`render_frame`] with what watch mode knows about the state ([`cached::Refresh`]) and
+/// where it keeps the frame's shading log ([`ShadingLog`]: the cached methods log their
+/// shading pass's rays there, and a relight replays the log it finds).
+#[allow(clippy::too_many_arguments)] // render_frame's, and what watch mode keeps
 pub fn render_frame_with(
     job: &Job,
     scene: &Scene,
@@ -103,6 +108,7 @@ pub fn render_frame_with(
     frame: i32,
     stats: &mut FrameStats,
     refresh: cached::Refresh,
+    log: Option<&mut ShadingLog>,
 ) -> Result<FrameImage> {
     let aspect = job.width as f32 / job.height as f32;
     let (fs, et) = scene.evaluate(job.time_of(frame), aspect, &resources.statics);
@@ -133,6 +139,7 @@ pub fn render_frame_with(
             let state = CachedState {
                 cache: &mut state.cache,
                 anchors: &mut state.anchors,
+                log,
             };
             let (img, rc, gs) = cached::render(
                 &ctx,

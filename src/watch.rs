@@ -15,14 +15,17 @@
 //!   material edit (they store it, §3, and reflect albedo × L_i / π). The state is the one
 //!   the same frame left, so no visibility detection is needed and no gather ray is traced
 //!   for the cache: strata whose ray hit a dynamic prim (no anchor holds their light) are
-//!   estimated again at the hits that frame's render kept.
+//!   estimated again at the hits that frame's render kept. Nor does the shading pass trace
+//!   its camera rays and shadow rays again: it replays those that frame's render logged
+//!   ([`crate::integrator::replay`]; the log is kept beside the state, within its budget).
 //! - **dynamic** — a dynamic prim's geometry or animation changed: the state is kept and the
 //!   visibility machinery (§3.2, Pseudocode 2) re-shoots the strata that see a dynamic prim
 //!   now or saw one in the state's frame, as from one frame to the next.
 //! - **camera** — the camera changed: static records are kept, new ones are placed where
 //!   the new view needs them, and those the new view does not use are dropped.
-//! - **rebuild** — static geometry, or a setting the cache depends on (method, strata,
-//!   photons, resolution, seed, ...), changed: a fresh state, as `render` starts with.
+//! - **rebuild** — static geometry, an alpha cut-out material (or its texture: alpha shapes
+//!   the geometry rays see), or a setting the cache depends on (method, strata, photons,
+//!   resolution, seed, ...), changed: a fresh state, as `render` starts with.
 //!
 //! The state of every frame of the range is kept after its render, so that a frame is
 //! re-rendered from the state it left itself. Methods without anchors (`brute-force`,
@@ -51,6 +54,7 @@ use notify_debouncer_full::{DebounceEventResult, new_debouncer};
 use crate::error::{Error, Result};
 use crate::geom::Motion;
 use crate::integrator::cached::Refresh;
+use crate::integrator::replay::ShadingLog;
 use crate::job::{Job, Method, Overrides};
 use crate::pipeline;
 use crate::scene::Scene;
@@ -312,9 +316,19 @@ pub fn classify(old: &Loaded, new: &Loaded) -> Changes {
     // Materials: an edit of emission alone is a light's.
     let mut materials = false;
     if os.materials.len() != ns.materials.len() {
+        // Prims may have changed materials: where one is cut out, the geometry too.
+        let cut_out = os
+            .materials
+            .iter()
+            .chain(ns.materials.iter())
+            .any(|m| m.alpha_cutoff.is_some());
         note(
             "materials added or removed".into(),
-            Rule::Relight,
+            if cut_out {
+                Rule::Rebuild
+            } else {
+                Rule::Relight
+            },
             &mut rule,
         );
         materials = true;
@@ -350,7 +364,24 @@ pub fn classify(old: &Loaded, new: &Loaded) -> Changes {
         }
     }
     if osig.textures != nsig.textures {
-        note("textures".into(), Rule::Relight, &mut rule);
+        // A cut-out material's alpha comes from its base colour texture: an edit of that
+        // texture changes the geometry that rays see.
+        let cut_out = |s: &Scene, t: usize| {
+            s.materials.iter().any(|m| {
+                m.alpha_cutoff.is_some() && m.base_color_texture.is_some_and(|r| r.texture == t)
+            })
+        };
+        let changed = (0..osig.textures.len().max(nsig.textures.len()))
+            .filter(|&t| osig.textures.get(t) != nsig.textures.get(t));
+        if changed.clone().any(|t| cut_out(os, t) || cut_out(ns, t)) {
+            note(
+                "textures (of an alpha cut-out material)".into(),
+                Rule::Rebuild,
+                &mut rule,
+            );
+        } else {
+            note("textures".into(), Rule::Relight, &mut rule);
+        }
         materials = true;
     }
     if differ(&osig.dynamic, &nsig.dynamic) {
@@ -430,10 +461,13 @@ pub struct Renderer {
     materials_epoch: u64,
 }
 
-/// A frame's state, its size ([`FrameState::heap_bytes`]) and the materials it was made
+/// A frame's state, the log of its shading pass's rays (which a relight of the frame
+/// replays: [`ShadingLog`]; empty where it did not fit the budget), their size
+/// ([`FrameState::heap_bytes`], [`ShadingLog::heap_bytes`]) and the materials they were made
 /// with ([`Renderer::materials_epoch`]).
 struct Kept {
     state: FrameState,
+    log: ShadingLog,
     bytes: u64,
     materials_epoch: u64,
 }
@@ -500,13 +534,16 @@ impl Renderer {
             .flatten();
         for frame in from.max(job.frames.start)..=job.frames.end {
             let t0 = Instant::now();
+            let mut log = ShadingLog::default();
             let (mut state, refresh) = if fresh {
                 (carried.take().unwrap_or_default(), Refresh::default())
-            } else if let Some(kept) = self.states.get(&frame) {
+            } else if let Some(kept) = self.states.get_mut(&frame) {
                 let refresh = Refresh {
                     relight_only: rule == Some(Rule::Relight),
                     albedo: kept.materials_epoch != epoch,
                 };
+                // The render logs its rays afresh (the kept log is replaced below).
+                log = std::mem::take(&mut kept.log);
                 (kept.state.clone(), refresh)
             } else if let Some(s) = carried.take() {
                 (s, Refresh::default())
@@ -536,7 +573,14 @@ impl Renderer {
             }
             let mut stats = pipeline::new_stats(job, frame);
             let img = pipeline::render_frame_with(
-                job, scene, resources, &mut state, frame, &mut stats, refresh,
+                job,
+                scene,
+                resources,
+                &mut state,
+                frame,
+                &mut stats,
+                refresh,
+                Some(&mut log),
             )?;
             if prune {
                 // Drops the static records the new view did not use (and dynamic ones,
@@ -561,7 +605,7 @@ impl Renderer {
                 &mut self.states,
                 self.state_budget,
                 frame,
-                &state,
+                (&state, log),
                 range,
                 epoch,
             ) {
@@ -584,21 +628,26 @@ impl Renderer {
     }
 }
 
-/// Keeps `state` as `frame`'s in `states` if it fits in `budget` bytes beside the states of
-/// the range's other frames (states of frames outside `range` make room first); returns
-/// whether it did. A frame whose state does not fit keeps none (an older one would belong
-/// to another scene).
+/// Keeps `state` and its shading `log` as `frame`'s in `states` if they fit in `budget`
+/// bytes beside the states of the range's other frames (states of frames outside `range`
+/// make room first), or else the state alone if it fits; returns whether the state was kept.
+/// A frame whose state does not fit keeps none (an older one would belong to another scene).
 fn keep(
     states: &mut BTreeMap<i32, Kept>,
     budget: u64,
     frame: i32,
-    state: &FrameState,
+    (state, mut log): (&FrameState, ShadingLog),
     range: std::ops::RangeInclusive<i32>,
     materials_epoch: u64,
 ) -> bool {
-    let bytes = state.heap_bytes() as u64;
     states.remove(&frame);
     let used = |states: &BTreeMap<i32, Kept>| states.values().map(|k| k.bytes).sum::<u64>();
+    let mut bytes = (state.heap_bytes() + log.heap_bytes()) as u64;
+    if used(states) + bytes > budget {
+        // The log goes before any other frame's state does.
+        log = ShadingLog::default();
+        bytes = state.heap_bytes() as u64;
+    }
     while used(states) + bytes > budget {
         match states.keys().copied().find(|f| !range.contains(f)) {
             Some(f) => {
@@ -613,6 +662,7 @@ fn keep(
             frame,
             Kept {
                 state: state.clone(),
+                log,
                 bytes,
                 materials_epoch,
             },

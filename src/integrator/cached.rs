@@ -20,6 +20,7 @@ use glam::Vec3;
 
 use super::anchors::AnchorStats;
 use super::bucket::{BucketParams, BucketPlan};
+use super::replay::{Replay, RowLog, ShadingLog};
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::accel::Hit;
 use crate::anchor::{AnchorId, AnchorSet};
@@ -30,7 +31,7 @@ use crate::cache::{
     WeberTally, gather,
 };
 use crate::geom::Motion;
-use crate::interaction::{Materials, SurfacePoint, trace_camera};
+use crate::interaction::{Materials, SurfacePoint, camera_hit, trace_camera};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
@@ -98,10 +99,13 @@ pub struct CachedStats {
 }
 
 /// What a cached method carries from frame to frame: the cache and, for `anchors`, the
-/// anchors (owned by the session's frame state).
+/// anchors (owned by the session's frame state); and where watch mode keeps the shading
+/// pass's rays ([`ShadingLog`]): the render logs its own there, after replaying the one
+/// there if it is a relight ([`Refresh::relight_only`]).
 pub struct CachedState<'a> {
     pub cache: &'a mut IrradianceCache,
     pub anchors: &'a mut Option<AnchorSet>,
+    pub log: Option<&'a mut ShadingLog>,
 }
 
 /// What watch mode knows about the state the anchor method carries into a frame
@@ -157,6 +161,17 @@ pub fn render_in_bands(
     refresh: Refresh,
 ) -> Result<(FrameImage, RenderCounts, CachedStats), crate::visibility::Error> {
     let mut st = CachedStats::default();
+    let mut log_slot = state.log;
+    let known = log_slot.as_deref_mut().map(std::mem::take).filter(|l| {
+        method == CachedMethod::Anchors
+            && refresh.relight_only
+            && l.fits(ctx.width, ctx.height, spp)
+    });
+    // Only the anchor method's state survives a light or material edit to be relit.
+    let replay = Replay {
+        known: known.as_ref(),
+        log: log_slot.is_some() && method == CachedMethod::Anchors,
+    };
     let t = Instant::now();
     let pm = PhotonMap::trace(
         ctx.scene,
@@ -219,6 +234,7 @@ pub fn render_in_bands(
         light_samples,
         glossy: params.glossy,
         pass: BucketPass::Shade(None),
+        replay,
     };
     let mut wall = 0.0;
     let mut planning = 0.0;
@@ -235,6 +251,10 @@ pub fn render_in_bands(
             let t = Instant::now();
             let planner = CachedShading {
                 pass: BucketPass::Plan,
+                replay: Replay {
+                    log: false,
+                    ..shading.replay
+                },
                 ..shading
             };
             let planned = super::render_pixel_rows(ctx, spp, &planner, band.clone());
@@ -266,7 +286,11 @@ pub fn render_in_bands(
         wall += t.elapsed().as_secs_f64();
         rows
     };
-    let (img, rows) = super::film::assemble(ctx.width, ctx.height, rows);
+    let (img, mut rows) = super::film::assemble(ctx.width, ctx.height, rows);
+    if let Some(slot) = log_slot.filter(|_| replay.log) {
+        let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
+        *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs).unwrap_or_default();
+    }
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
     used.sort_unstable();
     used.dedup();
@@ -427,6 +451,8 @@ pub struct CachedShading<'a> {
     pub light_samples: u32,
     pub glossy: GlossyParams,
     pass: BucketPass<'a>,
+    /// The rays the pass replays and whether it logs its own ([`super::replay`]).
+    replay: Replay<'a>,
 }
 
 /// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7). Lobes
@@ -517,6 +543,8 @@ pub struct ShadeRow {
     uncached_rays: u64,
     /// The planning pass's bucketing plans, with their pixel's index.
     plans: Vec<(u32, Option<BucketPlan>)>,
+    /// The row's camera hits and shadow answers, where the pass logs them.
+    log: RowLog,
 }
 
 impl AsMut<RenderCounts> for ShadeRow {
@@ -792,12 +820,42 @@ impl Shade for CachedShading<'_> {
 
     /// The pixel centre's surface: interpolation for the pixel's samples on that surface
     /// happens there, which does not move with the per-frame sample jitter.
-    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> CachedPixel {
+    fn begin_pixel(&self, ctx: &FrameContext, row: &mut ShadeRow, x: u32, y: u32) -> CachedPixel {
+        let index = y * ctx.width + x;
         let plans = match self.pass {
-            BucketPass::Shade(Some(band)) => band.of_pixel(y * ctx.width + x),
+            BucketPass::Shade(Some(band)) => band.of_pixel(index),
             _ => 0..0,
         };
-        CachedPixel::new(y * ctx.width + x, trace_centre(ctx, x, y), plans)
+        let (_, hit, centre) = camera_hit(
+            ctx.scene,
+            (x as f32 + 0.5) / ctx.width as f32,
+            (y as f32 + 0.5) / ctx.height as f32,
+            self.replay.centre(index),
+        );
+        if self.replay.log {
+            row.log.centre(hit);
+        }
+        CachedPixel::new(index, centre, plans)
+    }
+
+    fn camera(
+        &self,
+        ctx: &FrameContext,
+        row: &mut ShadeRow,
+        sampler: &crate::sampling::Sampler,
+        (x, y, s): (u32, u32, u32),
+    ) -> (Vec3, Option<SurfacePoint>) {
+        let [jx, jy] = super::camera_jitter(sampler, s);
+        let (dir, hit, sp) = camera_hit(
+            ctx.scene,
+            (x as f32 + jx) / ctx.width as f32,
+            (y as f32 + jy) / ctx.height as f32,
+            self.replay.sample(y * ctx.width + x, s),
+        );
+        if self.replay.log {
+            row.log.sample(hit);
+        }
+        (dir, sp)
     }
 
     fn sample(
@@ -815,8 +873,13 @@ impl Shade for CachedShading<'_> {
         let sp = &hit.sp;
         let t0 = Instant::now();
         let bsdf = hit.bsdf(ctx);
-        let l_direct =
-            hit.direct_light(ctx, &bsdf, self.light_samples, &mut row.counts.shadow_rays);
+        let mut shadow = self.replay.shadow_rays(
+            pixel.index,
+            hit.sample,
+            &mut row.counts.shadow_rays,
+            &mut row.log,
+        );
+        let l_direct = hit.direct_light(ctx, &bsdf, self.light_samples, &mut shadow);
         let t1 = Instant::now();
         let fallback_before = row.t_gather + row.t_estimate;
         // One interpolation per pixel and surface: the pixel's other samples on the same

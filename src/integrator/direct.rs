@@ -1,6 +1,7 @@
 //! `direct`: emission and direct light only, no indirect light.
 
 use crate::bsdf::Lobes;
+use crate::interaction::ShadowRays;
 
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade};
 
@@ -14,7 +15,7 @@ impl Shade for Direct {
     type Row = RenderCounts;
     type Pixel = ();
 
-    fn begin_pixel(&self, _: &FrameContext, _: u32, _: u32) {}
+    fn begin_pixel(&self, _: &FrameContext, _: &mut RenderCounts, _: u32, _: u32) {}
 
     fn sample(
         &self,
@@ -28,7 +29,7 @@ impl Shade for Direct {
             ctx,
             &hit.bsdf(ctx),
             self.light_samples,
-            &mut counts.shadow_rays,
+            &mut ShadowRays::traced(&mut counts.shadow_rays),
         );
         let emission = hit.sp.emission(ctx.materials);
         acc.hit(hit.depth(ctx), emission, direct, Lobes::ZERO);

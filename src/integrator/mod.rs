@@ -22,6 +22,7 @@ pub mod cached;
 pub mod direct;
 pub mod film;
 pub mod path;
+pub mod replay;
 
 use clap::ValueEnum;
 use glam::Vec3;
@@ -32,7 +33,8 @@ use crate::anchor::AnchorParams;
 use crate::bsdf::{Bsdf, Lobes};
 use crate::cache::CacheParams;
 use crate::interaction::{
-    LightSampling, Materials, SurfacePoint, brdf_sampled_emission, direct_light, trace_camera,
+    LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, direct_light,
+    trace_camera,
 };
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::FrameScene;
@@ -206,13 +208,13 @@ impl CameraHit<'_> {
     /// lights exactly, emissive triangles by `light_samples` emitter samples, combined with
     /// one BRDF sample by multiple importance sampling where the BRDF has a glossy lobe
     /// narrower than [`MIS_ROUGHNESS`] (there emitter samples alone miss the highlight).
-    /// Counts shadow rays and the BRDF sample's ray in `shadow_rays`.
+    /// Casts its shadow rays through `shadow`, and counts the BRDF sample's ray there too.
     pub fn direct_light(
         &self,
         ctx: &FrameContext,
         bsdf: &Bsdf,
         light_samples: u32,
-        shadow_rays: &mut u64,
+        shadow: &mut ShadowRays,
     ) -> Lobes {
         let mut dims = shading_dims();
         let (dim_light, dim_brdf) = (dims.take(3), dims.take(3));
@@ -230,7 +232,7 @@ impl CameraHit<'_> {
             self.sampler,
             (self.sample, light_samples, dim_light),
             sampling,
-            shadow_rays,
+            shadow,
         );
         if mis {
             let u = [
@@ -246,7 +248,7 @@ impl CameraHit<'_> {
                 bsdf,
                 u,
                 light_samples,
-                shadow_rays,
+                shadow.cast,
             );
         }
         l
@@ -268,7 +270,19 @@ pub trait Shade: Sync {
     /// State of one pixel, set up before its first sample.
     type Pixel;
 
-    fn begin_pixel(&self, ctx: &FrameContext, x: u32, y: u32) -> Self::Pixel;
+    fn begin_pixel(&self, ctx: &FrameContext, row: &mut Self::Row, x: u32, y: u32) -> Self::Pixel;
+
+    /// Camera sample `s` of pixel (x, y) ([`camera_sample`], which a method that keeps
+    /// camera hits replaces).
+    fn camera(
+        &self,
+        ctx: &FrameContext,
+        _row: &mut Self::Row,
+        sampler: &Sampler,
+        (x, y, s): (u32, u32, u32),
+    ) -> (Vec3, Option<SurfacePoint>) {
+        camera_sample(ctx, sampler, x, y, s)
+    }
 
     /// Shades one camera hit into `acc`.
     fn sample(
@@ -295,12 +309,17 @@ pub fn camera_sample(
     y: u32,
     s: u32,
 ) -> (Vec3, Option<SurfacePoint>) {
-    let [jx, jy] = sampler.get2(s, DIM_JITTER);
+    let [jx, jy] = camera_jitter(sampler, s);
     trace_camera(
         ctx.scene,
         (x as f32 + jx) / ctx.width as f32,
         (y as f32 + jy) / ctx.height as f32,
     )
+}
+
+/// Where camera sample `s` of a pixel whose stream is `sampler` lies in it ([0, 1)²).
+pub fn camera_jitter(sampler: &Sampler, s: u32) -> [f32; 2] {
+    sampler.get2(s, DIM_JITTER)
 }
 
 /// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
@@ -330,9 +349,9 @@ pub fn render_pixel_rows<S: Shade>(
     film::shade_rows(w, rows, |x, y, row: &mut S::Row| {
         let sampler = pixel_sampler(ctx, x, y);
         let mut acc = Accumulator::default();
-        let mut pixel = method.begin_pixel(ctx, x, y);
+        let mut pixel = method.begin_pixel(ctx, row, x, y);
         for s in 0..spp {
-            let (d, sp) = camera_sample(ctx, &sampler, x, y, s);
+            let (d, sp) = method.camera(ctx, row, &sampler, (x, y, s));
             row.as_mut().camera_rays += 1;
             let Some(sp) = sp else {
                 continue;

@@ -11,7 +11,9 @@ use glam::Vec3;
 
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, RenderCounts, Shade, shading_dims};
 use crate::bsdf::Lobes;
-use crate::interaction::{LightSampling, direct_light, emitter_pdf, power_heuristic, trace};
+use crate::interaction::{
+    LightSampling, ShadowRays, direct_light, emitter_pdf, power_heuristic, trace,
+};
 
 /// Which strategies light emissive triangles in the path tracer. Punctual lights are always
 /// sampled (no ray can hit them).
@@ -50,7 +52,7 @@ impl Shade for PathTracer {
     type Row = RenderCounts;
     type Pixel = ();
 
-    fn begin_pixel(&self, _: &FrameContext, _: u32, _: u32) {}
+    fn begin_pixel(&self, _: &FrameContext, _: &mut RenderCounts, _: u32, _: u32) {}
 
     fn sample(
         &self,
@@ -112,7 +114,7 @@ impl Shade for PathTracer {
                 sampler,
                 (s, n_light, dim_light),
                 sampling,
-                &mut counts.shadow_rays,
+                &mut ShadowRays::traced(&mut counts.shadow_rays),
             );
             if bounce == 0 {
                 acc.hit(hit.depth(ctx), sp.emission(m), l, Lobes::ZERO);

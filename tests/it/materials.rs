@@ -837,3 +837,40 @@ fn khr_materials_specular_is_a_supported_extension() {
         "{err}"
     );
 }
+
+/// Watch mode: an edit of a cut-out material's texture changes the geometry rays see, so it
+/// rebuilds the state; the same edit of an opaque material's texture changes colours only,
+/// and relights.
+#[test]
+fn watch_rebuilds_after_an_edit_of_a_cut_out_texture() {
+    use anchorage::watch::{Loaded, Rule, classify};
+    let dir = tempdir();
+    let write = |alpha: [u8; 2], mode: &str| {
+        let mut g = Gltf::default();
+        let body = masked_quad_scene(&mut g, mode);
+        // The quad's texture is the scene's only image: rewrite its texels.
+        g.images.clear();
+        g.png(2, 1, &[255, 0, 0, alpha[0], 255, 0, 0, alpha[1]]);
+        std::fs::write(dir.path().join("masked.gltf"), g.finish(&body)).unwrap();
+        std::fs::write(
+            dir.path().join("job.json"),
+            r#"{"scene":[{"path":"masked.gltf"}],
+            "camera":{"position":[0,5,0],"look_at":[0,0,0],"up":[0,0,-1],"yfov_deg":60},
+            "resolution":[8,8],"method":{"name":"anchors","preset":"draft"}}"#,
+        )
+        .unwrap();
+        Loaded::load(&dir.path().join("job.json"), &Default::default()).unwrap()
+    };
+    let rule = |mode: &str, a: [u8; 2], b: [u8; 2]| {
+        let old = write(a, mode);
+        let new = write(b, mode);
+        let c = classify(&old, &new);
+        (c.rule, c.what.join(", "))
+    };
+    let (r, what) = rule("MASK", [0, 255], [255, 255]);
+    assert_eq!(r, Rule::Rebuild, "{what}");
+    assert!(what.contains("alpha cut-out"), "{what}");
+    // The same texture on an opaque material: only its colour changed for the renderer.
+    let (r, what) = rule("OPAQUE", [0, 255], [255, 255]);
+    assert_eq!(r, Rule::Relight, "{what}");
+}

@@ -663,3 +663,99 @@ fn frames_back_in_the_range_after_a_material_edit_reflect_the_new_colour() {
         );
     }
 }
+
+/// Every AOV of an image as text (`{:?}` writes each float's shortest exact form): equal
+/// texts, equal bits.
+fn image_text(img: &anchorage::integrator::FrameImage) -> String {
+    format!("{img:?}")
+}
+
+#[test]
+fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_gives() {
+    use anchorage::integrator::cached::Refresh;
+    use anchorage::integrator::replay::ShadingLog;
+    use anchorage::job::{Job, Overrides};
+    use anchorage::pipeline;
+    use anchorage::session::FrameState;
+
+    let (_dir, gltf, job_path) = room_copy([48, 36], 0);
+    let job = Job::load(&job_path, &Overrides::default()).unwrap();
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let mut state = FrameState::default();
+    let mut log = ShadingLog::default();
+    let mut stats = pipeline::new_stats(&job, 0);
+    pipeline::render_frame_with(
+        &job,
+        &scene,
+        &resources,
+        &mut state,
+        0,
+        &mut stats,
+        Refresh::default(),
+        Some(&mut log),
+    )
+    .unwrap();
+    assert!(log.heap_bytes() > 0, "the render logged its rays");
+
+    let original: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    // Edits a relight serves: the lamp brighter (the same rays, all answered from the log),
+    // and a point light added besides (its shadow rays come first at every point, so the
+    // logged answers no longer line up with the rays cast: they must not be used).
+    let mut brighter = original.clone();
+    set_lamp(&mut brighter, 40.0);
+    let mut bulb = brighter.clone();
+    bulb["extensionsUsed"]
+        .as_array_mut()
+        .unwrap()
+        .push("KHR_lights_punctual".into());
+    bulb["extensions"] = serde_json::json!({"KHR_lights_punctual": {"lights": [
+        {"type": "point", "intensity": 30.0}
+    ]}});
+    let nodes = bulb["nodes"].as_array_mut().unwrap();
+    nodes.push(serde_json::json!({
+        "name": "bulb", "translation": [-1.0, 2.5, 0.5],
+        "extensions": {"KHR_lights_punctual": {"light": 0}}
+    }));
+    let bulb_node = nodes.len() - 1;
+    bulb["scenes"][0]["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(bulb_node.into());
+
+    let relit = |scene: &anchorage::scene::Scene, log: Option<&mut ShadingLog>| {
+        let mut s = state.clone();
+        let mut stats = pipeline::new_stats(&job, 0);
+        let refresh = Refresh {
+            relight_only: true,
+            albedo: false,
+        };
+        let img = pipeline::render_frame_with(
+            &job, scene, &resources, &mut s, 0, &mut stats, refresh, log,
+        )
+        .unwrap();
+        image_text(&img)
+    };
+    for (name, g) in [("lamp brighter", &brighter), ("point light added", &bulb)] {
+        save_atomic(&gltf, g);
+        let edited = job.load_scene().unwrap();
+        let mut replayed_log = log.clone();
+        let replayed = relit(&edited, Some(&mut replayed_log));
+        assert!(
+            replayed == relit(&edited, None),
+            "{name}: the replayed relight differs from the traced one"
+        );
+        // The replay logged this render's rays in turn: a second relight replays them.
+        assert!(
+            replayed == relit(&edited, Some(&mut replayed_log)),
+            "{name}"
+        );
+    }
+    // The log is what the replay reads: with its shadow answers inverted, the lamp's
+    // relight (whose rays all match) comes out otherwise.
+    save_atomic(&gltf, &brighter);
+    let edited = job.load_scene().unwrap();
+    let mut inverted = log.clone();
+    inverted.invert_shadow_answers();
+    assert!(relit(&edited, Some(&mut inverted)) != relit(&edited, None));
+}
