@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Mutation check for the anchor method, the cache's density rules and ray offsets: applies each deliberate
+# Mutation check for the anchor method, the cache's density rules, ray offsets, the glossy fit
+# and watch mode's replay: applies each deliberate
 # breakage kept in scripts/mutations/NAME.patch to the source, builds the tests, runs the
 # tests that are meant to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
 # restored after each one, also on interrupt.
@@ -26,10 +27,11 @@ declare -A TESTS=(
   [no-neighbour-clamp]="density::"
   [ray-offsets-shrunk]="offsets::"
   [glossy-through-albedo]="glossy::a_rough_metal"
+  [replay-without-ray-check]="watch::a_relight_that_replays"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
-  ray-offsets-shrunk glossy-through-albedo)
+  ray-offsets-shrunk glossy-through-albedo replay-without-ray-check)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
