@@ -25,8 +25,6 @@
 
 use glam::Vec3;
 
-use rayon::prelude::*;
-
 use super::importons::Importons;
 use super::kdtree::Neighbours;
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree};
@@ -176,7 +174,8 @@ impl Attacher<'_> {
         // Step 1: search in parallel.
         let searches: Vec<Search> = {
             let set = &*set;
-            hits.par_iter().map(|sp| self.search(set, sp)).collect()
+            let positions: Vec<Vec3> = hits.iter().map(|sp| sp.position).collect();
+            crate::photon::knn::map_in_query_order(&positions, |i| self.search(set, hits[i]))
         };
         let made = searches.iter().filter(|s| s.visited > 0).count() as u64;
         let visited = searches.iter().map(|s| s.visited).sum();
@@ -211,13 +210,14 @@ impl Attacher<'_> {
         let k = self.params.anchor_k(self.k);
         let estimates: Vec<(Vec3, f32)> = {
             let set = &*set;
-            created
-                .par_iter()
-                .map(|&id| {
-                    let a = set.anchor(id);
-                    self.pm.irradiance_and_radius(a.position(&q), a.normal(), k)
-                })
-                .collect()
+            let positions: Vec<Vec3> = created
+                .iter()
+                .map(|&id| set.anchor(id).position(&q))
+                .collect();
+            crate::photon::knn::map_in_query_order(&positions, |i| {
+                let a = set.anchor(created[i]);
+                self.pm.irradiance_and_radius(positions[i], a.normal(), k)
+            })
         };
         for (&id, (e, r2)) in created.iter().zip(estimates) {
             set.anchor_mut(id).set_irradiance(e);

@@ -3,7 +3,6 @@
 //! the method's resolver that turns the hits into strata and radiance.
 
 use glam::Vec3;
-use rayon::prelude::*;
 
 use super::directional::stratum_direction;
 use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Stratum};
@@ -44,14 +43,23 @@ impl GatherHit {
 pub type Resolve<'a> =
     dyn FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<(Vec<Stratum>, Vec<Vec3>)> + 'a;
 
-/// The brute-force resolver: radiance at every hit from `radiance`, no links.
+/// The brute-force resolver: radiance at every hit from `radiance`, no links. The hits are
+/// estimated in the photon tree's spatial order ([`crate::photon::knn::query_order`]).
 pub fn estimate_all(
     footprints: &[f32],
     hits: Vec<Vec<GatherHit>>,
     radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
 ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
-    hits.into_par_iter()
-        .zip(footprints.par_iter())
+    let points: Vec<&SurfacePoint> = hits
+        .iter()
+        .flatten()
+        .filter_map(|g| g.sp.as_ref())
+        .collect();
+    let positions: Vec<Vec3> = points.iter().map(|sp| sp.position).collect();
+    let mut estimates =
+        crate::photon::knn::map_in_query_order(&positions, |i| radiance(points[i])).into_iter();
+    hits.iter()
+        .zip(footprints)
         .map(|(h, &scale)| {
             let strata = h
                 .iter()
@@ -59,7 +67,10 @@ pub fn estimate_all(
                 .collect();
             let rad = h
                 .iter()
-                .map(|g| g.sp.as_ref().map_or(Vec3::ZERO, radiance))
+                .map(|g| match g.sp {
+                    Some(_) => estimates.next().unwrap_or(Vec3::ZERO),
+                    None => Vec3::ZERO,
+                })
                 .collect();
             (strata, rad)
         })

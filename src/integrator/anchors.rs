@@ -66,15 +66,27 @@ fn resolve(
     hits: Vec<Vec<GatherHit>>,
     previous: Option<&[Vec<Stratum>]>,
 ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
+    // Estimated in the photon tree's spatial order (knn::query_order).
+    let at_dynamic: Vec<&crate::interaction::SurfacePoint> = hits
+        .iter()
+        .flatten()
+        .filter_map(|g| g.sp.as_ref().filter(|sp| sp.hit.motion == Motion::Dynamic))
+        .collect();
+    let positions: Vec<Vec3> = at_dynamic.iter().map(|sp| sp.position).collect();
+    let mut estimates = crate::photon::knn::map_in_query_order(&positions, |i| {
+        let sp = at_dynamic[i];
+        sp.albedo(att.m)
+            * std::f32::consts::FRAC_1_PI
+            * att.pm.irradiance(sp.position, sp.ng, att.k)
+    })
+    .into_iter();
     let dynamic: Vec<Vec<Vec3>> = hits
-        .par_iter()
+        .iter()
         .map(|h| {
             h.iter()
                 .map(|g| match &g.sp {
                     Some(sp) if sp.hit.motion == Motion::Dynamic => {
-                        sp.albedo(att.m)
-                            * std::f32::consts::FRAC_1_PI
-                            * att.pm.irradiance(sp.position, sp.ng, att.k)
+                        estimates.next().unwrap_or(Vec3::ZERO)
                     }
                     _ => Vec3::ZERO,
                 })
@@ -329,26 +341,23 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (
         kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
     });
     let set_ref = &*set;
-    let fresh: Vec<Option<(Vec3, f32)>> = set
-        .anchors
-        .par_iter()
-        .enumerate()
-        .map(|(i, a)| {
-            if !a.is_live() {
-                return None;
-            }
-            let x = a.position(&q);
-            let r2 = set_ref.reach2(AnchorId(i as u32));
-            let untouched = r2.is_finite()
-                && !all
-                && changed_tree.as_ref().is_none_or(|t| {
-                    t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
-                        .distance
-                        > r2
-                });
-            (!untouched).then(|| pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2))
-        })
-        .collect();
+    let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
+    let fresh: Vec<Option<(Vec3, f32)>> = crate::photon::knn::map_in_query_order(&positions, |i| {
+        let a = &set_ref.anchors[i];
+        if !a.is_live() {
+            return None;
+        }
+        let x = positions[i];
+        let r2 = set_ref.reach2(AnchorId(i as u32));
+        let untouched = r2.is_finite()
+            && !all
+            && changed_tree.as_ref().is_none_or(|t| {
+                t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
+                    .distance
+                    > r2
+            });
+        (!untouched).then(|| pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2))
+    });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
     let mut count = 0;
     for (i, e) in fresh.into_iter().enumerate() {
@@ -372,17 +381,14 @@ fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap) {
         path_start: pm.path_start.clone(),
     };
     set.photon_links = vec![None; pm.photons.len()];
-    let nearest: Vec<Option<usize>> = set
-        .anchors
-        .par_iter()
-        .map(|a| {
-            if a.is_live() {
-                pm.nearest(a.position(&q))
-            } else {
-                None
-            }
-        })
-        .collect();
+    let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
+    let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_query_order(&positions, |i| {
+        if set.anchors[i].is_live() {
+            pm.nearest(positions[i])
+        } else {
+            None
+        }
+    });
     for (i, ph) in nearest.into_iter().enumerate() {
         if let Some(ph) = ph
             && set.photon_links[ph].is_none()

@@ -315,9 +315,11 @@ pub fn render_in_bands(
     // each work site (CachedStats): camera rays and film bookkeeping, measured nowhere,
     // are spread in the same proportion.
     let sum = |f: fn(&ShadeRow) -> f64| rows.iter().map(f).sum::<f64>();
+    // Direct light and interpolation were timed at a sample of the shaded samples.
+    let sampled = sum(|r| r.shaded as f64) / sum(|r| r.timed as f64).max(1.0);
     let site = [
-        sum(|r| r.t_direct),
-        sum(|r| r.t_interp),
+        sampled * sum(|r| r.t_direct),
+        sampled * sum(|r| r.t_interp),
         sum(|r| r.t_gather),
         sum(|r| r.t_estimate),
     ];
@@ -367,6 +369,10 @@ fn prepare_brute_force(
 /// keep a GPU busy (tens of thousands of shading points' worth), few enough plans to keep
 /// in memory (a few kilobytes each).
 pub const BAND_PIXELS: u32 = 8192;
+
+/// The shading pass times direct light and interpolation in one pixel column of this many
+/// ([`ShadeRow`]).
+const TIMED_COLUMNS: u32 = 8;
 
 /// Which pass of the shade phase runs (module doc).
 #[derive(Clone, Copy)]
@@ -531,13 +537,18 @@ pub struct ShadeRow {
     /// The last cache read's contributions, and every read's for the Weber rule (§4.3).
     parts: Vec<Contribution>,
     weber: WeberTally,
-    /// Thread seconds at the work sites (the rows of [`CachedStats`]): direct light,
-    /// interpolation (bucketing and glossy rays included), and the uncached fallback's gather
-    /// rays and photon look-ups.
+    /// Thread seconds at the work sites (the rows of [`CachedStats`]): direct light and
+    /// interpolation (bucketing and glossy rays included) at the `timed` samples of the
+    /// `shaded` ones (a clock read per sample costs a few per cent of the pass: one pixel
+    /// column in [`TIMED_COLUMNS`] is timed, a sample of every part of the image), and the
+    /// uncached fallback's gather rays and photon look-ups, each timed (they are rare and
+    /// long).
     t_direct: f64,
     t_interp: f64,
     t_gather: f64,
     t_estimate: f64,
+    timed: u64,
+    shaded: u64,
     uncached: u64,
     /// Gather rays the uncached fallback traced.
     uncached_rays: u64,
@@ -871,7 +882,11 @@ impl Shade for CachedShading<'_> {
             return;
         }
         let sp = &hit.sp;
-        let t0 = Instant::now();
+        // Timed in one pixel column of every TIMED_COLUMNS (ShadeRow::t_direct).
+        row.shaded += 1;
+        let timed = (pixel.index % ctx.width.max(1)).is_multiple_of(TIMED_COLUMNS);
+        row.timed += u64::from(timed);
+        let t0 = timed.then(Instant::now);
         let bsdf = hit.bsdf(ctx);
         let mut shadow = self.replay.shadow_rays(
             pixel.index,
@@ -880,7 +895,7 @@ impl Shade for CachedShading<'_> {
             &mut row.log,
         );
         let l_direct = hit.direct_light(ctx, &bsdf, self.light_samples, &mut shadow);
-        let t1 = Instant::now();
+        let t1 = timed.then(Instant::now);
         let fallback_before = row.t_gather + row.t_estimate;
         // One interpolation per pixel and surface: the pixel's other samples on the same
         // prim, facing the same way, reuse it (records are valid over several pixels).
@@ -937,10 +952,13 @@ impl Shade for CachedShading<'_> {
                 }
             }
         };
-        row.t_direct += (t1 - t0).as_secs_f64();
-        // Interpolation's share: the sample's time after direct light, less the fallback's.
-        let fallback = row.t_gather + row.t_estimate - fallback_before;
-        row.t_interp += (t1.elapsed().as_secs_f64() - fallback).max(0.0);
+        if let (Some(t0), Some(t1)) = (t0, t1) {
+            row.t_direct += (t1 - t0).as_secs_f64();
+            // Interpolation's share: the sample's time after direct light, less the
+            // fallback's.
+            let fallback = row.t_gather + row.t_estimate - fallback_before;
+            row.t_interp += (t1.elapsed().as_secs_f64() - fallback).max(0.0);
+        }
         acc.hit(
             hit.depth(ctx),
             sp.emission(ctx.materials),

@@ -194,6 +194,54 @@ impl PointTree {
     }
 }
 
+/// An order in which to query the tree at `points` (indices into it): along a Morton curve
+/// over their bounding box (10 bits per axis; points not finite first), so that consecutive
+/// queries visit the same nodes and points and find them in cache. The answers do not
+/// depend on the order.
+pub fn query_order(points: &[Vec3]) -> Vec<u32> {
+    let (lo, hi) = points
+        .iter()
+        .filter(|p| p.is_finite())
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(*p), hi.max(*p))
+        });
+    let scale = 1023.0 / (hi - lo).max_element().max(f32::MIN_POSITIVE);
+    // Spreads the 10 low bits of `v` to every third bit.
+    fn spread(v: u32) -> u32 {
+        let mut v = v & 0x3ff;
+        v = (v | (v << 16)) & 0x0300_00ff;
+        v = (v | (v << 8)) & 0x0300_f00f;
+        v = (v | (v << 4)) & 0x030c_30c3;
+        (v | (v << 2)) & 0x0924_9249
+    }
+    let key = |p: &Vec3| {
+        let c = ((*p - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
+        spread(c.x as u32) | spread(c.y as u32) << 1 | spread(c.z as u32) << 2
+    };
+    let mut order: Vec<(u32, u32)> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (if p.is_finite() { key(p) } else { 0 }, i as u32))
+        .collect();
+    order.sort_unstable();
+    order.into_iter().map(|(_, i)| i).collect()
+}
+
+/// `f(i)` for every point `i` of `points`, computed in parallel in [`query_order`] and
+/// returned in the points' order: for a batch of look-ups at scattered points (gather hits
+/// in record order, anchors in the order they were made).
+pub fn map_in_query_order<T: Send>(points: &[Vec3], f: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    use rayon::prelude::*;
+    let order = query_order(points);
+    let answers: Vec<T> = order.par_iter().map(|&i| f(i as usize)).collect();
+    let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(points.len()).collect();
+    for (&i, a) in order.iter().zip(answers) {
+        out[i as usize] = Some(a);
+    }
+    // The order is a permutation of the points: every slot is filled.
+    out.into_iter().flatten().collect()
+}
+
 /// Keeps the `k` least of `buf` (squared distance, tree position) by squared distance, then
 /// index (`items` maps positions to indices).
 fn keep_nearest(buf: &mut Vec<Neighbour>, k: usize, items: &[u32]) {
@@ -308,6 +356,33 @@ mod tests {
                 brute(&points, x, r2, 1).first().copied()
             );
         }
+    }
+
+    #[test]
+    fn batches_in_query_order_answer_in_the_points_order() {
+        let points: Vec<Vec3> = (0..1000)
+            .map(|i| {
+                let t = i as f32 * 0.37;
+                Vec3::new(t.sin() * 5.0, (t * 1.3).cos(), t % 2.0)
+            })
+            .chain([Vec3::NAN, Vec3::splat(f32::INFINITY)])
+            .collect();
+        let mut order = query_order(&points);
+        // Neighbours along the curve are near in space: its steps are short on average.
+        let step: f32 = order
+            .windows(2)
+            .take(999)
+            .filter(|w| w.iter().all(|&i| (i as usize) < 1000))
+            .map(|w| points[w[0] as usize].distance(points[w[1] as usize]))
+            .sum::<f32>()
+            / 999.0;
+        let raw: f32 = (0..999).map(|i| points[i].distance(points[i + 1])).sum::<f32>() / 999.0;
+        assert!(step < 0.5 * raw, "{step} {raw}");
+        order.sort_unstable();
+        assert!(order.iter().copied().eq(0..points.len() as u32), "a permutation");
+        let back = map_in_query_order(&points, |i| i);
+        assert!(back.into_iter().eq(0..points.len()));
+        assert!(map_in_query_order(&[], |i| i).is_empty());
     }
 
     #[test]

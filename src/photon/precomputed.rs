@@ -7,7 +7,6 @@ use std::num::NonZero;
 use glam::Vec3;
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use rayon::prelude::*;
 
 use super::{DISC_THICKNESS, PhotonMap};
 
@@ -21,12 +20,13 @@ pub struct PrecomputedIrradiance {
 
 impl PrecomputedIrradiance {
     pub fn new(pm: &PhotonMap, k: usize) -> Self {
-        let points: Vec<(Vec3, Vec3, Vec3)> = pm
-            .photons
-            .par_iter()
-            .step_by(4)
-            .map(|p| (p.position, p.normal, pm.irradiance(p.position, p.normal, k)))
-            .collect();
+        // Estimated in the photon tree's spatial order (super::knn::query_order).
+        let at: Vec<&super::Photon> = pm.photons.iter().step_by(4).collect();
+        let positions: Vec<Vec3> = at.iter().map(|p| p.position).collect();
+        let points: Vec<(Vec3, Vec3, Vec3)> = super::knn::map_in_query_order(&positions, |i| {
+            let p = at[i];
+            (p.position, p.normal, pm.irradiance(p.position, p.normal, k))
+        });
         let tree = (!points.is_empty()).then(|| {
             let pts: Vec<[f32; 3]> = points.iter().map(|p| p.0.to_array()).collect();
             ImmutableKdTree::new_from_slice(&pts)
