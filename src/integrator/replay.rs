@@ -13,7 +13,7 @@
 //! bucketing's depth queries are traced as before.
 //!
 //! Size: 12 bytes per camera sample and pixel centre, 4 more per sample, 8 per shadow ray
-//! (about 30 MB for the example's 320×240 at 16 samples); watch mode keeps it beside the
+//! (about 28 MB for the example's 320×240 at 16 samples); watch mode keeps it beside the
 //! frame's state within the state memory budget, and drops it where it does not fit.
 
 use crate::accel::Hit;
