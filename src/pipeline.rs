@@ -12,7 +12,7 @@ use crate::checkpoint;
 use crate::error::{Error, Result};
 use crate::integrator::cached::{self, CachedMethod, CachedState};
 use crate::integrator::path::PathTracer;
-use crate::integrator::replay::ShadingLog;
+use crate::integrator::replay::{DirectKeys, ShadingLog};
 use crate::integrator::{FrameContext, FrameImage, direct, path};
 use crate::interaction::Materials;
 use crate::job::{FrameRange, Job, Method};
@@ -98,7 +98,8 @@ pub fn render_frame(
 
 /// [`render_frame`] with what watch mode knows about the state ([`cached::Refresh`]) and
 /// where it keeps the frame's shading log ([`ShadingLog`]: the cached methods log their
-/// shading pass's rays there, and a relight replays the log it finds).
+/// shading pass's rays and direct light there, with `keys`, and a relight replays the log
+/// it finds).
 #[allow(clippy::too_many_arguments)] // render_frame's, and what watch mode keeps
 pub fn render_frame_with(
     job: &Job,
@@ -108,7 +109,7 @@ pub fn render_frame_with(
     frame: i32,
     stats: &mut FrameStats,
     refresh: cached::Refresh,
-    log: Option<&mut ShadingLog>,
+    log: Option<(&mut ShadingLog, &DirectKeys)>,
 ) -> Result<FrameImage> {
     let aspect = job.width as f32 / job.height as f32;
     let (fs, et) = scene.evaluate(job.time_of(frame), aspect, &resources.statics);
@@ -139,7 +140,8 @@ pub fn render_frame_with(
             let state = CachedState {
                 cache: &mut state.cache,
                 anchors: &mut state.anchors,
-                log,
+                keys: log.as_ref().map(|l| l.1),
+                log: log.map(|l| l.0),
             };
             let (img, rc, gs) = cached::render(
                 &ctx,

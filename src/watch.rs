@@ -54,7 +54,7 @@ use notify_debouncer_full::{DebounceEventResult, new_debouncer};
 use crate::error::{Error, Result};
 use crate::geom::Motion;
 use crate::integrator::cached::Refresh;
-use crate::integrator::replay::ShadingLog;
+use crate::integrator::replay::{DirectKeys, ShadingLog};
 use crate::job::{Job, Method, Overrides};
 use crate::pipeline;
 use crate::scene::Scene;
@@ -572,6 +572,7 @@ impl Renderer {
                 }
             }
             let mut stats = pipeline::new_stats(job, frame);
+            let keys = direct_keys(new, frame);
             let img = pipeline::render_frame_with(
                 job,
                 scene,
@@ -580,7 +581,7 @@ impl Renderer {
                 frame,
                 &mut stats,
                 refresh,
-                Some(&mut log),
+                Some((&mut log, &keys)),
             )?;
             if prune {
                 // Drops the static records the new view did not use (and dynamic ones,
@@ -625,6 +626,26 @@ impl Renderer {
             self.cold_per_frame = Some(pass.seconds / pass.frames as f64);
         }
         Ok(pass)
+    }
+}
+
+/// What frame `frame`'s direct light depends on in `new` besides geometry and camera
+/// ([`DirectKeys`]): the lights (punctual lights' placement and definitions, every
+/// material's emission, every texture) and each material.
+pub fn direct_keys(new: &Loaded, frame: i32) -> DirectKeys {
+    let emission: Vec<_> = new
+        .scene
+        .materials
+        .iter()
+        .map(|m| (m.emission, m.emissive_texture))
+        .collect();
+    DirectKeys {
+        lights: debug_hash(&(
+            new.signature.lights.get(&frame),
+            &new.signature.textures,
+            emission,
+        )),
+        materials: new.scene.materials.iter().map(debug_hash).collect(),
     }
 }
 

@@ -20,7 +20,7 @@ use glam::Vec3;
 
 use super::anchors::AnchorStats;
 use super::bucket::{BucketParams, BucketPlan};
-use super::replay::{Replay, RowLog, ShadingLog};
+use super::replay::{DirectKeys, Replay, RowLog, ShadingLog};
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::accel::Hit;
 use crate::anchor::{AnchorId, AnchorSet};
@@ -106,6 +106,9 @@ pub struct CachedState<'a> {
     pub cache: &'a mut IrradianceCache,
     pub anchors: &'a mut Option<AnchorSet>,
     pub log: Option<&'a mut ShadingLog>,
+    /// What this render's direct light depends on ([`DirectKeys`]), logged with it so
+    /// that a relight may reuse it; `None`: never reused.
+    pub keys: Option<&'a DirectKeys>,
 }
 
 /// What watch mode knows about the state the anchor method carries into a frame
@@ -171,6 +174,7 @@ pub fn render_in_bands(
     let replay = Replay {
         known: known.as_ref(),
         log: log_slot.is_some() && method == CachedMethod::Anchors,
+        keys: state.keys,
     };
     let t = Instant::now();
     let pm = PhotonMap::trace(
@@ -289,7 +293,8 @@ pub fn render_in_bands(
     let (img, mut rows) = super::film::assemble(ctx.width, ctx.height, rows);
     if let Some(slot) = log_slot.filter(|_| replay.log) {
         let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
-        *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs).unwrap_or_default();
+        *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs, replay.keys.cloned())
+            .unwrap_or_default();
     }
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
     used.sort_unstable();
@@ -888,13 +893,19 @@ impl Shade for CachedShading<'_> {
         row.timed += u64::from(timed);
         let t0 = timed.then(Instant::now);
         let bsdf = hit.bsdf(ctx);
-        let mut shadow = self.replay.shadow_rays(
-            pixel.index,
-            hit.sample,
-            &mut row.counts.shadow_rays,
-            &mut row.log,
-        );
-        let l_direct = hit.direct_light(ctx, &bsdf, self.light_samples, &mut shadow);
+        let cast = &mut row.counts.shadow_rays;
+        let reused = self
+            .replay
+            .direct(pixel.index, hit.sample, sp.material, cast, &mut row.log);
+        let l_direct = reused.unwrap_or_else(|| {
+            let mut shadow = self
+                .replay
+                .shadow_rays(pixel.index, hit.sample, cast, &mut row.log);
+            hit.direct_light(ctx, &bsdf, self.light_samples, &mut shadow)
+        });
+        if self.replay.log {
+            row.log.direct(l_direct);
+        }
         let t1 = timed.then(Instant::now);
         let fallback_before = row.t_gather + row.t_estimate;
         // One interpolation per pixel and surface: the pixel's other samples on the same

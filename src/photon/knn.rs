@@ -376,10 +376,16 @@ mod tests {
             .map(|w| points[w[0] as usize].distance(points[w[1] as usize]))
             .sum::<f32>()
             / 999.0;
-        let raw: f32 = (0..999).map(|i| points[i].distance(points[i + 1])).sum::<f32>() / 999.0;
+        let raw: f32 = (0..999)
+            .map(|i| points[i].distance(points[i + 1]))
+            .sum::<f32>()
+            / 999.0;
         assert!(step < 0.5 * raw, "{step} {raw}");
         order.sort_unstable();
-        assert!(order.iter().copied().eq(0..points.len() as u32), "a permutation");
+        assert!(
+            order.iter().copied().eq(0..points.len() as u32),
+            "a permutation"
+        );
         let back = map_in_query_order(&points, |i| i);
         assert!(back.into_iter().eq(0..points.len()));
         assert!(map_in_query_order(&[], |i| i).is_empty());

@@ -519,6 +519,7 @@ fn bucketing_in_bands_gives_the_same_bytes_as_per_point_depth_maps() {
                 cache: &mut s.cache,
                 anchors: &mut s.anchors,
                 log: None,
+                keys: None,
             },
             &params,
             CachedMethod::Anchors,

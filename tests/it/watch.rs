@@ -674,34 +674,46 @@ fn image_text(img: &anchorage::integrator::FrameImage) -> String {
 fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_gives() {
     use anchorage::integrator::cached::Refresh;
     use anchorage::integrator::replay::ShadingLog;
-    use anchorage::job::{Job, Overrides};
+    use anchorage::job::Overrides;
     use anchorage::pipeline;
     use anchorage::session::FrameState;
+    use anchorage::watch::{Loaded, direct_keys};
 
     let (_dir, gltf, job_path) = room_copy([48, 36], 0);
-    let job = Job::load(&job_path, &Overrides::default()).unwrap();
-    let scene = job.load_scene().unwrap();
-    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let load = || Loaded::load(&job_path, &Overrides::default()).unwrap();
+    let first = load();
+    let job = &first.job;
+    let resources = pipeline::new_resources(job, &first.scene).unwrap();
     let mut state = FrameState::default();
     let mut log = ShadingLog::default();
-    let mut stats = pipeline::new_stats(&job, 0);
+    let mut stats = pipeline::new_stats(job, 0);
     pipeline::render_frame_with(
-        &job,
-        &scene,
+        job,
+        &first.scene,
         &resources,
         &mut state,
         0,
         &mut stats,
         Refresh::default(),
-        Some(&mut log),
+        Some((&mut log, &direct_keys(&first, 0))),
     )
     .unwrap();
     assert!(log.heap_bytes() > 0, "the render logged its rays");
 
     let original: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
-    // Edits a relight serves: the lamp brighter (the same rays, all answered from the log),
-    // and a point light added besides (its shadow rays come first at every point, so the
-    // logged answers no longer line up with the rays cast: they must not be used).
+    // Edits a relight serves: a material's colour (the other materials' direct light is
+    // reused from the log, the edited one's computed again), the lamp brighter (no direct
+    // light reused: the lights changed; the same rays, all answered from the log), and a
+    // point light added besides (its shadow rays come first at every point, so the logged
+    // answers no longer line up with the rays cast: they must not be used).
+    let mut redder = original.clone();
+    let white = redder["materials"]
+        .as_array_mut()
+        .unwrap()
+        .iter_mut()
+        .find(|m| m["name"] == "white")
+        .expect("the room has a white material");
+    white["pbrMetallicRoughness"]["baseColorFactor"] = serde_json::json!([0.4, 0.8, 0.8, 1.0]);
     let mut brighter = original.clone();
     set_lamp(&mut brighter, 40.0);
     let mut bulb = brighter.clone();
@@ -723,22 +735,34 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
         .unwrap()
         .push(bulb_node.into());
 
-    let relit = |scene: &anchorage::scene::Scene, log: Option<&mut ShadingLog>| {
+    let relit = |edited: &Loaded, log: Option<&mut ShadingLog>| {
         let mut s = state.clone();
-        let mut stats = pipeline::new_stats(&job, 0);
+        let mut stats = pipeline::new_stats(job, 0);
         let refresh = Refresh {
             relight_only: true,
-            albedo: false,
+            albedo: true,
         };
+        let keys = direct_keys(edited, 0);
         let img = pipeline::render_frame_with(
-            &job, scene, &resources, &mut s, 0, &mut stats, refresh, log,
+            job,
+            &edited.scene,
+            &resources,
+            &mut s,
+            0,
+            &mut stats,
+            refresh,
+            log.map(|l| (l, &keys)),
         )
         .unwrap();
         image_text(&img)
     };
-    for (name, g) in [("lamp brighter", &brighter), ("point light added", &bulb)] {
+    for (name, g) in [
+        ("white redder", &redder),
+        ("lamp brighter", &brighter),
+        ("point light added", &bulb),
+    ] {
         save_atomic(&gltf, g);
-        let edited = job.load_scene().unwrap();
+        let edited = load();
         let mut replayed_log = log.clone();
         let replayed = relit(&edited, Some(&mut replayed_log));
         assert!(
@@ -752,10 +776,18 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
         );
     }
     // The log is what the replay reads: with its shadow answers inverted, the lamp's
-    // relight (whose rays all match) comes out otherwise.
+    // relight (whose rays all match, and which reuses no direct light) comes out otherwise;
+    // with its direct light cleared, the lamp's relight is as before (none reused) and the
+    // material edit's is not (the other materials' reused).
     save_atomic(&gltf, &brighter);
-    let edited = job.load_scene().unwrap();
+    let edited = load();
     let mut inverted = log.clone();
     inverted.invert_shadow_answers();
     assert!(relit(&edited, Some(&mut inverted)) != relit(&edited, None));
+    let mut cleared = log.clone();
+    cleared.clear_direct_light();
+    assert!(relit(&edited, Some(&mut cleared.clone())) == relit(&edited, None));
+    save_atomic(&gltf, &redder);
+    let edited = load();
+    assert!(relit(&edited, Some(&mut cleared)) != relit(&edited, None));
 }
