@@ -650,8 +650,9 @@ pub fn direct_keys(new: &Loaded, frame: i32) -> DirectKeys {
 }
 
 /// Keeps `state` and its shading `log` as `frame`'s in `states` if they fit in `budget`
-/// bytes beside the states of the range's other frames (states of frames outside `range`
-/// make room first), or else the state alone if it fits; returns whether the state was kept.
+/// bytes beside the states of the range's other frames, or else the state alone: the other
+/// frames' logs make room first, then the states of frames outside `range`; returns
+/// whether the state was kept.
 /// A frame whose state does not fit keeps none (an older one would belong to another scene).
 fn keep(
     states: &mut BTreeMap<i32, Kept>,
@@ -665,9 +666,19 @@ fn keep(
     let used = |states: &BTreeMap<i32, Kept>| states.values().map(|k| k.bytes).sum::<u64>();
     let mut bytes = (state.heap_bytes() + log.heap_bytes()) as u64;
     if used(states) + bytes > budget {
-        // The log goes before any other frame's state does.
+        // Logs go before any frame's state does: this frame's, then the others'.
         log = ShadingLog::default();
         bytes = state.heap_bytes() as u64;
+        let mut total = used(states) + bytes;
+        for k in states.values_mut() {
+            if total <= budget {
+                break;
+            }
+            let without = k.state.heap_bytes() as u64;
+            total -= k.bytes.saturating_sub(without);
+            k.log = ShadingLog::default();
+            k.bytes = without;
+        }
     }
     while used(states) + bytes > budget {
         match states.keys().copied().find(|f| !range.contains(f)) {
