@@ -31,7 +31,7 @@ use crate::cache::{
     WeberTally, gather,
 };
 use crate::geom::Motion;
-use crate::interaction::{Materials, SurfacePoint, camera_hit, trace_camera};
+use crate::interaction::{Materials, SurfacePoint, camera_hit};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
@@ -643,12 +643,23 @@ const SAME_FACING: f32 = 0.999;
 
 /// What a pixel centre's camera ray hit: the surface point, or nothing.
 fn trace_centre(ctx: &FrameContext, x: u32, y: u32) -> Option<SurfacePoint> {
-    trace_camera(
+    centre_hit(ctx, x, y, None).1
+}
+
+/// The pixel centre's camera hit and surface point ([`camera_hit`]: `known` is a logged hit).
+fn centre_hit(
+    ctx: &FrameContext,
+    x: u32,
+    y: u32,
+    known: Option<Option<Hit>>,
+) -> (Option<Hit>, Option<SurfacePoint>) {
+    let (_, hit, sp) = camera_hit(
         ctx.scene,
         (x as f32 + 0.5) / ctx.width as f32,
         (y as f32 + 0.5) / ctx.height as f32,
-    )
-    .1
+        known,
+    );
+    (hit, sp)
 }
 
 impl CachedPixel {
@@ -842,12 +853,7 @@ impl Shade for CachedShading<'_> {
             BucketPass::Shade(Some(band)) => band.of_pixel(index),
             _ => 0..0,
         };
-        let (_, hit, centre) = camera_hit(
-            ctx.scene,
-            (x as f32 + 0.5) / ctx.width as f32,
-            (y as f32 + 0.5) / ctx.height as f32,
-            self.replay.centre(index),
-        );
+        let (hit, centre) = centre_hit(ctx, x, y, self.replay.centre(index));
         if self.replay.log {
             row.log.centre(hit);
         }
@@ -861,13 +867,8 @@ impl Shade for CachedShading<'_> {
         sampler: &crate::sampling::Sampler,
         (x, y, s): (u32, u32, u32),
     ) -> (Vec3, Option<SurfacePoint>) {
-        let [jx, jy] = super::camera_jitter(sampler, s);
-        let (dir, hit, sp) = camera_hit(
-            ctx.scene,
-            (x as f32 + jx) / ctx.width as f32,
-            (y as f32 + jy) / ctx.height as f32,
-            self.replay.sample(y * ctx.width + x, s),
-        );
+        let known = self.replay.sample(y * ctx.width + x, s);
+        let (dir, hit, sp) = super::camera_sample_hit(ctx, sampler, (x, y, s), known);
         if self.replay.log {
             row.log.sample(hit);
         }

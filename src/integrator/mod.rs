@@ -33,8 +33,8 @@ use crate::anchor::AnchorParams;
 use crate::bsdf::{Bsdf, Lobes};
 use crate::cache::CacheParams;
 use crate::interaction::{
-    LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, direct_light,
-    trace_camera,
+    LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, camera_hit,
+    direct_light,
 };
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::FrameScene;
@@ -309,17 +309,25 @@ pub fn camera_sample(
     y: u32,
     s: u32,
 ) -> (Vec3, Option<SurfacePoint>) {
-    let [jx, jy] = camera_jitter(sampler, s);
-    trace_camera(
+    let (dir, _, sp) = camera_sample_hit(ctx, sampler, (x, y, s), None);
+    (dir, sp)
+}
+
+/// [`camera_sample`] with the hit itself, found by tracing or given as `known` (a logged
+/// hit of the same ray, [`replay`]).
+pub fn camera_sample_hit(
+    ctx: &FrameContext,
+    sampler: &Sampler,
+    (x, y, s): (u32, u32, u32),
+    known: Option<Option<crate::accel::Hit>>,
+) -> (Vec3, Option<crate::accel::Hit>, Option<SurfacePoint>) {
+    let [jx, jy] = sampler.get2(s, DIM_JITTER);
+    camera_hit(
         ctx.scene,
         (x as f32 + jx) / ctx.width as f32,
         (y as f32 + jy) / ctx.height as f32,
+        known,
     )
-}
-
-/// Where camera sample `s` of a pixel whose stream is `sampler` lies in it ([0, 1)²).
-pub fn camera_jitter(sampler: &Sampler, s: u32) -> [f32; 2] {
-    sampler.get2(s, DIM_JITTER)
 }
 
 /// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
