@@ -5,6 +5,12 @@
 //! Samples come from Burley's Owen-scrambled Sobol sequence (`sobol_burley`, "Practical
 //! Hash-based Owen Scrambling", JCGT 2020): a quasi-Monte Carlo sequence with good
 //! stratification in every 4-D slice, decorrelated per pixel by the scramble seed.
+//!
+//! The crate's sampler walks the sample index's bits (up to 16 steps per value); for the
+//! first [`TABLE_DIMS`] dimensions — camera jitter, light samples, the first bounces — this
+//! module reads the same Sobol values from two 256-entry tables per dimension instead (a
+//! Sobol value is the XOR of the direction vectors of the index's set bits, so it is the
+//! XOR of its two index bytes' partial values). The values are the crate's, bit for bit.
 
 /// A 32-bit avalanche mix (the finaliser of MurmurHash3 applied over `values`).
 pub fn hash(values: &[u32]) -> u32 {
@@ -91,7 +97,8 @@ impl Sampler {
     /// `i + 2^16` would share its first dimensions with an earlier one.
     pub fn get(&self, index: u32, dim: u32) -> f32 {
         let (index, seed) = self.block(index, dim);
-        sobol_burley::sample(index, dim % sobol_burley::NUM_DIMENSIONS, seed)
+        let within = dim % sobol_burley::NUM_DIMENSIONS;
+        scrambled(shuffle(index, seed), within, seed)
     }
 
     /// The index within its block of 2^16 samples, and the seed of the block and of the
@@ -113,15 +120,60 @@ impl Sampler {
     /// [`Sampler::get`] calls, computed four dimensions at a time (SIMD) where both lie in
     /// one of the sequence's sets of four.
     pub fn get2(&self, index: u32, dim: u32) -> [f32; 2] {
+        let within = dim % sobol_burley::NUM_DIMENSIONS;
         if dim % 4 == 3 {
             return [self.get(index, dim), self.get(index, dim + 1)];
         }
         let (index, seed) = self.block(index, dim);
-        let within = dim % sobol_burley::NUM_DIMENSIONS;
+        if within + 1 < TABLE_DIMS {
+            let shuffled = shuffle(index, seed);
+            return [
+                scrambled(shuffled, within, seed),
+                scrambled(shuffled, within + 1, seed),
+            ];
+        }
         let four = sobol_burley::sample_4d(index, within / 4, seed);
         let k = (within % 4) as usize;
         [four[k], four[k + 1]]
     }
+}
+
+/// Dimensions whose Sobol values come from tables (module doc).
+const TABLE_DIMS: u32 = 32;
+
+/// Per table dimension, the bit-reversed Sobol values of the index's top byte and of its
+/// second byte (the sequence uses the reversed index's top 16 bits).
+static SOBOL_TABLES: std::sync::LazyLock<Vec<[[u32; 256]; 2]>> = std::sync::LazyLock::new(|| {
+    use sobol_burley::parts::sobol_rev;
+    (0..TABLE_DIMS)
+        .map(|d| {
+            [
+                std::array::from_fn(|b| sobol_rev((b as u32) << 24, d)),
+                std::array::from_fn(|b| sobol_rev((b as u32) << 16, d)),
+            ]
+        })
+        .collect()
+});
+
+/// The sample's index shuffled by the sequence's seed, bit-reversed (as
+/// `sobol_burley::sample` does before reading the Sobol value).
+fn shuffle(index: u32, seed: u32) -> u32 {
+    use sobol_burley::parts::{hash, owen_scramble_rev};
+    owen_scramble_rev(index.reverse_bits(), hash(seed ^ 0x79c6_8e4a))
+}
+
+/// `sobol_burley::sample(index, dim, seed)` from the shuffled index `shuffled_rev`, with
+/// the Sobol value read from the tables where `dim` has them.
+fn scrambled(shuffled_rev: u32, dim: u32, seed: u32) -> f32 {
+    use sobol_burley::parts::{hash, owen_scramble_rev, sobol_rev, u32_to_f32_norm};
+    let sobol = match SOBOL_TABLES.get(dim as usize) {
+        Some(t) => t[0][(shuffled_rev >> 24) as usize] ^ t[1][((shuffled_rev >> 16) & 0xff) as usize],
+        None => sobol_rev(shuffled_rev, dim),
+    };
+    let scramble = (dim >> 2)
+        ^ seed.wrapping_mul(0x9c8f_2d3b)
+        ^ [0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8][dim as usize & 3];
+    u32_to_f32_norm(owen_scramble_rev(sobol, hash(scramble)).reverse_bits())
 }
 
 #[cfg(test)]
@@ -134,6 +186,21 @@ mod tests {
         let b = Sampler::new(1, 2, Stream::Camera, 3);
         assert_eq!(a.get(5, 7), b.get(5, 7));
         assert_ne!(a.get(5, 7), Sampler::new(1, 3, Stream::Camera, 3).get(5, 7));
+    }
+
+    /// The tables give the crate's samples, bit for bit.
+    #[test]
+    fn samples_are_the_crates() {
+        let mut h = 1u32;
+        for _ in 0..200_000 {
+            h = hash(&[h]);
+            let (index, seed, dim) = (h & 0xffff, hash(&[h, 1]), hash(&[h, 2]) % 256);
+            assert_eq!(
+                scrambled(shuffle(index, seed), dim, seed).to_bits(),
+                sobol_burley::sample(index, dim, seed).to_bits(),
+                "index {index} seed {seed} dim {dim}"
+            );
+        }
     }
 
     #[test]
