@@ -175,6 +175,7 @@ pub fn render_in_bands(
         known: known.as_ref(),
         log: log_slot.is_some() && method == CachedMethod::Anchors,
         keys: state.keys,
+        spp,
     };
     let t = Instant::now();
     let pm = PhotonMap::trace(
@@ -293,7 +294,8 @@ pub fn render_in_bands(
     let (img, mut rows) = super::film::assemble(ctx.width, ctx.height, rows);
     if let Some(slot) = log_slot.filter(|_| replay.log) {
         let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
-        *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs, replay.keys.cloned())
+        let keys = replay.keys.cloned();
+        *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs, keys, known)
             .unwrap_or_default();
     }
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
@@ -854,7 +856,15 @@ impl Shade for CachedShading<'_> {
             _ => 0..0,
         };
         let (hit, centre) = centre_hit(ctx, x, y, self.replay.centre(index));
-        if self.replay.log {
+        if self.replay.log && x == 0 {
+            let shadow = self.replay.known.map_or(
+                (ctx.width * self.light_samples) as usize,
+                |l| l.row_shadow_len(y),
+            );
+            row.log
+                .reserve(ctx.width, self.replay.spp, shadow, self.replay.logs_camera());
+        }
+        if self.replay.logs_camera() {
             row.log.centre(hit);
         }
         CachedPixel::new(index, centre, plans)
@@ -870,7 +880,7 @@ impl Shade for CachedShading<'_> {
         let known = self.replay.sample(y * ctx.width + x, s);
         let (dir, hit, sp) = super::camera_sample_hit(ctx, sampler, (x, y, s), known);
         if self.replay.log {
-            row.log.sample(hit);
+            row.log.sample(self.replay.logs_camera().then_some(hit));
         }
         (dir, sp)
     }

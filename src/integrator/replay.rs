@@ -35,45 +35,59 @@ pub struct DirectKeys {
     pub materials: Vec<u64>,
 }
 
-/// One frame's logged camera hits and shadow answers (module doc).
+/// One frame's logged camera hits and shadow answers (module doc), kept as the rows that
+/// logged them (a row's log is read in place, never copied into one array).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ShadingLog {
     width: u32,
     height: u32,
     spp: u32,
-    /// Per pixel, its centre's camera hit and then each sample's: pixel `i`'s centre at
-    /// `i·(spp + 1)`, its sample `s` at `i·(spp + 1) + 1 + s`.
-    camera: Vec<Option<Hit>>,
-    /// Per camera sample (`i·spp + s`), where its shadow answers start in `shadow`, and one
-    /// more entry for the end.
-    starts: Vec<u32>,
-    /// Shadow answers ([`ShadowRays`]' log entries).
-    shadow: Vec<u64>,
-    /// Per camera sample, its direct light (zero where it hit nothing).
-    direct: Vec<Lobes>,
+    rows: Vec<RowLog>,
     /// What the direct light was computed with (`None`: unknown, never reused).
     keys: Option<DirectKeys>,
 }
 
 /// One row's part of a [`ShadingLog`], made as the row is shaded: its pixels in order,
 /// each pixel's centre and then its samples.
-#[derive(Debug, Default)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct RowLog {
+    /// Per pixel, its centre's camera hit and then each sample's: pixel `x`'s centre at
+    /// `x·(spp + 1)`, its sample `s` at `x·(spp + 1) + 1 + s`. Empty in a pass that replays
+    /// a log: its camera hits are that log's ([`ShadingLog::join`]).
     camera: Vec<Option<Hit>>,
+    /// Per camera sample (`x·spp + s`), where its shadow answers start in `shadow`, and,
+    /// once joined, one more entry for the end.
     starts: Vec<u32>,
+    /// Shadow answers ([`ShadowRays`]' log entries).
     shadow: Vec<u64>,
+    /// Per camera sample, its direct light (zero where it hit nothing).
     direct: Vec<Lobes>,
 }
 
 impl RowLog {
+    /// Room for a row of `width` pixels of `spp` samples, about `shadow` shadow answers, and
+    /// their camera hits unless `camera` is false.
+    pub fn reserve(&mut self, width: u32, spp: u32, shadow: usize, camera: bool) {
+        let samples = width as usize * spp as usize;
+        if camera {
+            self.camera.reserve(samples + width as usize);
+        }
+        self.starts.reserve(samples + 1);
+        self.direct.reserve(samples);
+        self.shadow.reserve(shadow);
+    }
+
     /// Logs a pixel centre's camera hit.
     pub fn centre(&mut self, hit: Option<Hit>) {
         self.camera.push(hit);
     }
 
-    /// Logs a camera sample's hit; the shadow answers logged next are this sample's.
-    pub fn sample(&mut self, hit: Option<Hit>) {
-        self.camera.push(hit);
+    /// Logs a camera sample's hit (`None`: a replayed hit, which the log it came from
+    /// keeps); the shadow answers logged next are this sample's.
+    pub fn sample(&mut self, hit: Option<Option<Hit>>) {
+        if let Some(hit) = hit {
+            self.camera.push(hit);
+        }
         self.starts.push(self.shadow.len() as u32);
         self.direct.push(Lobes::ZERO);
     }
@@ -89,76 +103,108 @@ impl RowLog {
             *last = l;
         }
     }
+
+    /// Shadow answers the row logged.
+    pub fn shadow_len(&self) -> usize {
+        self.shadow.len()
+    }
+
+    fn heap_bytes(&self) -> usize {
+        self.camera.capacity() * size_of::<Option<Hit>>()
+            + self.starts.capacity() * size_of::<u32>()
+            + self.shadow.capacity() * size_of::<u64>()
+            + self.direct.capacity() * size_of::<Lobes>()
+    }
 }
 
 impl ShadingLog {
     /// The log of a `width`×`height` image of `spp` samples per pixel from its rows' logs,
-    /// top row first, its direct light computed with `keys`; `None` if they do not add up
-    /// to it (a row logged nothing).
+    /// top row first, its direct light computed with `keys`; rows that logged no camera
+    /// hits take those of `replayed` (the log the pass replayed). `None` if they do not add
+    /// up to it (a row logged nothing).
     pub fn join(
         width: u32,
         height: u32,
         spp: u32,
         rows: impl IntoIterator<Item = RowLog>,
         keys: Option<DirectKeys>,
+        replayed: Option<ShadingLog>,
     ) -> Option<ShadingLog> {
-        let pixels = width as usize * height as usize;
-        let samples = pixels * spp as usize;
+        let samples = width as usize * spp as usize;
+        let mut old = replayed
+            .filter(|l| l.fits(width, height, spp))
+            .map(|l| l.rows.into_iter());
         let mut log = ShadingLog {
             width,
             height,
             spp,
-            camera: Vec::with_capacity(pixels * (spp as usize + 1)),
-            starts: Vec::with_capacity(samples + 1),
-            shadow: Vec::new(),
-            direct: Vec::with_capacity(samples),
+            rows: Vec::with_capacity(height as usize),
             keys,
         };
-        for row in rows {
-            let base = u32::try_from(log.shadow.len()).ok()?;
-            log.camera.extend(row.camera);
-            log.starts.extend(row.starts.iter().map(|s| base + s));
-            log.shadow.extend(row.shadow);
-            log.direct.extend(row.direct);
+        for mut row in rows {
+            let old_row = old.as_mut().and_then(|o| o.next());
+            if row.camera.is_empty() {
+                row.camera = old_row?.camera;
+            }
+            let end = u32::try_from(row.shadow.len()).ok()?;
+            let complete = row.camera.len() == samples + width as usize
+                && row.starts.len() == samples
+                && row.direct.len() == samples;
+            if !complete {
+                return None;
+            }
+            row.starts.push(end);
+            log.rows.push(row);
         }
-        log.starts.push(u32::try_from(log.shadow.len()).ok()?);
-        let complete = log.camera.len() == pixels * (spp as usize + 1)
-            && log.starts.len() == samples + 1
-            && log.direct.len() == samples;
-        complete.then_some(log)
+        (log.rows.len() == height as usize).then_some(log)
     }
 
     /// Whether the log is of a `width`×`height` image of `spp` samples per pixel.
     pub fn fits(&self, width: u32, height: u32, spp: u32) -> bool {
         (self.width, self.height, self.spp) == (width, height, spp)
-            && self.starts.len() == width as usize * height as usize * spp as usize + 1
+            && self.rows.len() == height as usize
+    }
+
+    /// Pixel `pixel`'s row log and its place in the row.
+    fn at(&self, pixel: u32) -> (&RowLog, usize) {
+        let w = self.width.max(1);
+        (&self.rows[(pixel / w) as usize], (pixel % w) as usize)
     }
 
     /// What pixel `pixel`'s centre ray hit.
     pub fn centre(&self, pixel: u32) -> Option<Hit> {
-        self.camera[pixel as usize * (self.spp as usize + 1)]
+        let (row, x) = self.at(pixel);
+        row.camera[x * (self.spp as usize + 1)]
     }
 
     /// What sample `s` of pixel `pixel` hit.
     pub fn sample(&self, pixel: u32, s: u32) -> Option<Hit> {
-        self.camera[pixel as usize * (self.spp as usize + 1) + 1 + s as usize]
+        let (row, x) = self.at(pixel);
+        row.camera[x * (self.spp as usize + 1) + 1 + s as usize]
     }
 
     /// Sample `s` of pixel `pixel`'s shadow answers, for [`ShadowRays::logged`].
     pub fn shadow(&self, pixel: u32, s: u32) -> &[u64] {
-        let i = pixel as usize * self.spp as usize + s as usize;
-        &self.shadow[self.starts[i] as usize..self.starts[i + 1] as usize]
+        let (row, x) = self.at(pixel);
+        let i = x * self.spp as usize + s as usize;
+        &row.shadow[row.starts[i] as usize..row.starts[i + 1] as usize]
+    }
+
+    /// Shadow answers logged in image row `y`.
+    pub fn row_shadow_len(&self, y: u32) -> usize {
+        self.rows.get(y as usize).map_or(0, RowLog::shadow_len)
     }
 
     /// Sample `s` of pixel `pixel`'s logged direct light.
     fn direct(&self, pixel: u32, s: u32) -> Lobes {
-        self.direct[pixel as usize * self.spp as usize + s as usize]
+        let (row, x) = self.at(pixel);
+        row.direct[x * self.spp as usize + s as usize]
     }
 
     /// Inverts every logged shadow answer. Public for the test that a relight reads them.
     #[doc(hidden)]
     pub fn invert_shadow_answers(&mut self) {
-        for e in &mut self.shadow {
+        for e in self.rows.iter_mut().flat_map(|r| &mut r.shadow) {
             *e ^= 1;
         }
     }
@@ -167,15 +213,15 @@ impl ShadingLog {
     /// it where, and only where, its keys allow.
     #[doc(hidden)]
     pub fn clear_direct_light(&mut self) {
-        self.direct.fill(Lobes::ZERO);
+        for r in &mut self.rows {
+            r.direct.fill(Lobes::ZERO);
+        }
     }
 
     /// Bytes the log holds on the heap.
     pub fn heap_bytes(&self) -> usize {
-        self.camera.capacity() * size_of::<Option<Hit>>()
-            + self.starts.capacity() * size_of::<u32>()
-            + self.shadow.capacity() * size_of::<u64>()
-            + self.direct.capacity() * size_of::<Lobes>()
+        self.rows.iter().map(RowLog::heap_bytes).sum::<usize>()
+            + self.rows.capacity() * size_of::<RowLog>()
             + self.keys.as_ref().map_or(0, |k| k.materials.capacity() * 8)
     }
 }
@@ -188,9 +234,17 @@ pub struct Replay<'a> {
     pub log: bool,
     /// The keys of this render's lights and materials (module doc), if known.
     pub keys: Option<&'a DirectKeys>,
+    /// The pass's camera samples per pixel (what a row's log makes room for).
+    pub spp: u32,
 }
 
 impl<'a> Replay<'a> {
+    /// Whether the pass logs camera hits (not where it replays them: those are the known
+    /// log's).
+    pub fn logs_camera(&self) -> bool {
+        self.log && self.known.is_none()
+    }
+
     /// The centre of pixel `pixel`: its logged hit, if known.
     pub fn centre(&self, pixel: u32) -> Option<Option<Hit>> {
         self.known.map(|l| l.centre(pixel))
@@ -272,7 +326,7 @@ mod tests {
                 let p = (y * 2 + x) as f32;
                 row.centre(hit(p));
                 for s in 0..2u32 {
-                    row.sample(if s == 1 && x == 1 { None } else { hit(p + 0.5) });
+                    row.sample(Some(if s == 1 && x == 1 { None } else { hit(p + 0.5) }));
                     for r in 0..(x + s) {
                         row.shadow().push(u64::from(y * 100 + x * 10 + s + r));
                     }
@@ -280,7 +334,7 @@ mod tests {
             }
             rows.push(row);
         }
-        let log = ShadingLog::join(2, 2, 2, rows, None).expect("complete");
+        let log = ShadingLog::join(2, 2, 2, rows.clone(), None, None).expect("complete");
         assert!(log.fits(2, 2, 2));
         assert!(!log.fits(2, 2, 4));
         assert_eq!(log.centre(3), hit(3.0));
@@ -290,6 +344,13 @@ mod tests {
         assert_eq!(log.shadow(3, 1), &[111, 112]);
         assert_eq!(log.shadow(2, 1), &[101]);
         // A row that logged nothing: no log.
-        assert!(ShadingLog::join(2, 2, 2, [RowLog::default()], None).is_none());
+        assert!(ShadingLog::join(2, 2, 2, [RowLog::default()], None, None).is_none());
+        // Rows of a pass that replayed `log` keep its camera hits.
+        let replaying = rows.into_iter().map(|mut r| {
+            r.camera.clear();
+            r
+        });
+        let again = ShadingLog::join(2, 2, 2, replaying, None, Some(log.clone()));
+        assert_eq!(again.as_ref(), Some(&log));
     }
 }
