@@ -372,6 +372,54 @@ impl IrradianceCache {
             }
         });
         parts.sort_unstable_by_key(|c| c.record);
+        self.blend(parts)
+    }
+
+    /// What [`IrradianceCache::interpolate`] at (x, n) gives where its valid records and
+    /// their weights are known (`weights`, in index order, as it found them): the records'
+    /// values read again (a relight changes them, not where they are valid). `parts` is
+    /// filled as `interpolate` fills it.
+    pub fn interpolate_known(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        weights: &[(u32, f32)],
+        parts: &mut Vec<Contribution>,
+    ) -> Option<Interpolated> {
+        parts.clear();
+        parts.extend(weights.iter().map(|&(i, w)| Contribution {
+            record: i,
+            weight: w,
+            value: self.records[i as usize].extrapolate(x, n).max(Vec3::ZERO),
+        }));
+        self.blend(parts)
+    }
+
+    /// A key of everything that decides which records are valid where, and with what
+    /// weight: the records' positions, normals, reach radii and enclosure, and the error
+    /// thresholds `a`. Equal keys: [`IrradianceCache::interpolate`] finds the same records
+    /// with the same weights at every point.
+    pub fn interpolation_key(&self, a: &[f32]) -> u64 {
+        use std::hash::Hasher;
+        let mut h = std::hash::DefaultHasher::new();
+        for v in a {
+            h.write_u32(v.to_bits());
+        }
+        h.write_usize(self.records.len());
+        for r in &self.records {
+            for v in [r.position, r.normal] {
+                for c in v.to_array() {
+                    h.write_u32(c.to_bits());
+                }
+            }
+            h.write_u32(r.reach_radius.to_bits());
+            h.write_u8(u8::from(r.enclosed));
+        }
+        h.finish()
+    }
+
+    /// The weighted blend of the contributions `parts` (in index order).
+    fn blend(&self, parts: &[Contribution]) -> Option<Interpolated> {
         let mut sum = Vec3::ZERO;
         let mut wsum = 0.0f32;
         let mut reshot = 0.0f32;

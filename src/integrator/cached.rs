@@ -176,6 +176,7 @@ pub fn render_in_bands(
         log: log_slot.is_some() && method == CachedMethod::Anchors,
         keys: state.keys,
         spp,
+        interpolation: None,
     };
     let t = Instant::now();
     let pm = PhotonMap::trace(
@@ -231,6 +232,13 @@ pub fn render_in_bands(
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
 
+    let replay = Replay {
+        interpolation: (replay.log || replay.known.is_some()).then(|| {
+            let a = params.cache.error;
+            cache.interpolation_key(&[a, RELAXED * a])
+        }),
+        ..replay
+    };
     let shading = CachedShading {
         cache,
         anchors: state.anchors.as_ref(),
@@ -294,8 +302,9 @@ pub fn render_in_bands(
     let (img, mut rows) = super::film::assemble(ctx.width, ctx.height, rows);
     if let Some(slot) = log_slot.filter(|_| replay.log) {
         let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
-        let keys = replay.keys.cloned();
+        let (keys, interpolation) = (replay.keys.cloned(), replay.interpolation);
         *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs, keys, known)
+            .map(|l| l.with_interpolation_key(interpolation))
             .unwrap_or_default();
     }
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
@@ -563,6 +572,8 @@ pub struct ShadeRow {
     plans: Vec<(u32, Option<BucketPlan>)>,
     /// The row's camera hits and shadow answers, where the pass logs them.
     log: RowLog,
+    /// Cache reads so far in the row (where a relight's next one is in the log).
+    reads: usize,
 }
 
 impl AsMut<RenderCounts> for ShadeRow {
@@ -788,13 +799,26 @@ impl CachedShading<'_> {
     ) -> CacheValue {
         let a = self.params.error;
         let parts = &mut row.parts;
-        let found = self
-            .cache
-            .interpolate(at.position, at.ns, a, parts)
-            .or_else(|| {
+        // A relight reads the records the logged read found valid, with their weights.
+        let known = self.replay.interpolation(pixel, row.reads);
+        row.reads += 1;
+        let found = match known {
+            Some([]) => None,
+            Some(weights) => {
                 self.cache
-                    .interpolate(at.position, at.ns, RELAXED * a, parts)
-            });
+                    .interpolate_known(at.position, at.ns, weights, parts)
+            }
+            None => self
+                .cache
+                .interpolate(at.position, at.ns, a, parts)
+                .or_else(|| {
+                    self.cache
+                        .interpolate(at.position, at.ns, RELAXED * a, parts)
+                }),
+        };
+        if self.replay.log {
+            row.log.interpolation(parts);
+        }
         row.used.extend(parts.iter().map(|c| c.record));
         if found.is_some() && self.params.weber_threshold > 0.0 {
             row.weber.read(parts);

@@ -24,6 +24,7 @@
 
 use crate::accel::Hit;
 use crate::bsdf::Lobes;
+use crate::cache::Contribution;
 use crate::interaction::ShadowRays;
 
 /// What a sample's direct light depends on besides the geometry, the camera and the
@@ -45,6 +46,9 @@ pub struct ShadingLog {
     rows: Vec<RowLog>,
     /// What the direct light was computed with (`None`: unknown, never reused).
     keys: Option<DirectKeys>,
+    /// The cache's interpolation key when the rows logged their cache reads
+    /// (`IrradianceCache::interpolation_key`; `None`: unknown, never replayed).
+    interpolation: Option<u64>,
 }
 
 /// One row's part of a [`ShadingLog`], made as the row is shaded: its pixels in order,
@@ -62,6 +66,10 @@ pub struct RowLog {
     shadow: Vec<u64>,
     /// Per camera sample, its direct light (zero where it hit nothing).
     direct: Vec<Lobes>,
+    /// Per cache read of the row, in order, where its valid records end in `interp`.
+    interp_ends: Vec<u32>,
+    /// The cache reads' valid records and weights (none: no record was valid).
+    interp: Vec<(u32, f32)>,
 }
 
 impl RowLog {
@@ -104,6 +112,22 @@ impl RowLog {
         }
     }
 
+    /// Logs a cache read's valid records and weights.
+    pub fn interpolation(&mut self, parts: &[Contribution]) {
+        self.interp.extend(parts.iter().map(|c| (c.record, c.weight)));
+        self.interp_ends.push(self.interp.len() as u32);
+    }
+
+    /// Cache read `i`'s valid records and weights, if the row logged that many.
+    fn read(&self, i: usize) -> Option<&[(u32, f32)]> {
+        let end = *self.interp_ends.get(i)? as usize;
+        let start = match i {
+            0 => 0,
+            _ => self.interp_ends[i - 1] as usize,
+        };
+        self.interp.get(start..end)
+    }
+
     /// Shadow answers the row logged.
     pub fn shadow_len(&self) -> usize {
         self.shadow.len()
@@ -114,6 +138,8 @@ impl RowLog {
             + self.starts.capacity() * size_of::<u32>()
             + self.shadow.capacity() * size_of::<u64>()
             + self.direct.capacity() * size_of::<Lobes>()
+            + self.interp_ends.capacity() * size_of::<u32>()
+            + self.interp.capacity() * size_of::<(u32, f32)>()
     }
 }
 
@@ -140,6 +166,7 @@ impl ShadingLog {
             spp,
             rows: Vec::with_capacity(height as usize),
             keys,
+            interpolation: None,
         };
         for mut row in rows {
             let old_row = old.as_mut().and_then(|o| o.next());
@@ -157,6 +184,14 @@ impl ShadingLog {
             log.rows.push(row);
         }
         (log.rows.len() == height as usize).then_some(log)
+    }
+
+    /// The log with its cache reads made where the cache's interpolation key was `key`.
+    pub fn with_interpolation_key(self, key: Option<u64>) -> ShadingLog {
+        ShadingLog {
+            interpolation: key,
+            ..self
+        }
     }
 
     /// Whether the log is of a `width`×`height` image of `spp` samples per pixel.
@@ -218,6 +253,15 @@ impl ShadingLog {
         }
     }
 
+    /// Sets every logged cache read's weights to 1. Public for the test that a relight
+    /// reads them.
+    #[doc(hidden)]
+    pub fn flatten_interpolation_weights(&mut self) {
+        for (_, w) in self.rows.iter_mut().flat_map(|r| &mut r.interp) {
+            *w = 1.0;
+        }
+    }
+
     /// Bytes the log holds on the heap.
     pub fn heap_bytes(&self) -> usize {
         self.rows.iter().map(RowLog::heap_bytes).sum::<usize>()
@@ -236,6 +280,9 @@ pub struct Replay<'a> {
     pub keys: Option<&'a DirectKeys>,
     /// The pass's camera samples per pixel (what a row's log makes room for).
     pub spp: u32,
+    /// The cache's interpolation key in this pass (`IrradianceCache::interpolation_key`):
+    /// where it is the known log's, the cache reads are replayed.
+    pub interpolation: Option<u64>,
 }
 
 impl<'a> Replay<'a> {
@@ -253,6 +300,17 @@ impl<'a> Replay<'a> {
     /// Sample `s` of pixel `pixel`: its logged hit, if known.
     pub fn sample(&self, pixel: u32, s: u32) -> Option<Option<Hit>> {
         self.known.map(|l| l.sample(pixel, s))
+    }
+
+    /// The valid records and weights of the `i`-th cache read of pixel `pixel`'s row, from
+    /// the known log where the cache's records are valid where they were when it was
+    /// logged (equal interpolation keys).
+    pub fn interpolation(&self, pixel: u32, i: usize) -> Option<&'a [(u32, f32)]> {
+        let known = self.known?;
+        if known.interpolation.is_none() || known.interpolation != self.interpolation {
+            return None;
+        }
+        known.rows.get((pixel / known.width.max(1)) as usize)?.read(i)
     }
 
     /// Sample `s` of pixel `pixel`'s direct light from the known log, on a surface of

@@ -205,6 +205,16 @@ pub struct FrameCamera {
     pub aspect: f32,
     /// Camera rays see surfaces between these depths along `forward` only.
     pub clip: Clip,
+    /// tan(yfov / 2) of a perspective projection, computed once (every camera ray uses it).
+    tan_half_yfov: f32,
+}
+
+/// tan(yfov / 2) of a perspective projection; 0 for an orthographic one.
+fn tan_half_yfov(projection: Projection) -> f32 {
+    match projection {
+        Projection::Perspective { yfov } => (0.5 * yfov).tan(),
+        Projection::Orthographic { .. } => 0.0,
+    }
 }
 
 /// A camera ray: it sees surfaces from `origin` (on the near plane) out to `tmax`.
@@ -235,6 +245,7 @@ impl FrameCamera {
             up: rot * Vec3::Y,
             forward: rot * -Vec3::Z,
             projection,
+            tan_half_yfov: tan_half_yfov(projection),
             aspect,
             clip: Clip {
                 near: clip.near * s,
@@ -257,6 +268,7 @@ impl FrameCamera {
             up: right.cross(forward),
             forward,
             projection: Projection::Perspective { yfov },
+            tan_half_yfov: tan_half_yfov(Projection::Perspective { yfov }),
             aspect,
             clip: Clip::default(),
         }
@@ -268,8 +280,8 @@ impl FrameCamera {
         let sx = 2.0 * x - 1.0;
         let sy = 1.0 - 2.0 * y;
         let (eye, dir) = match self.projection {
-            Projection::Perspective { yfov } => {
-                let h = (0.5 * yfov).tan();
+            Projection::Perspective { .. } => {
+                let h = self.tan_half_yfov;
                 let d = self.forward + self.right * (sx * h * self.aspect) + self.up * (sy * h);
                 (self.origin, d.normalize())
             }

@@ -790,4 +790,12 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
     save_atomic(&gltf, &redder);
     let edited = load();
     assert!(relit(&edited, Some(&mut cleared)) != relit(&edited, None));
+    // And its cache reads: with their weights made equal, the relight comes out otherwise;
+    // the same log marked as made where the cache's records were valid elsewhere (another
+    // interpolation key) has its reads made again.
+    let mut flat = log.clone();
+    flat.flatten_interpolation_weights();
+    assert!(relit(&edited, Some(&mut flat.clone())) != relit(&edited, None));
+    let mut elsewhere = flat.with_interpolation_key(Some(1));
+    assert!(relit(&edited, Some(&mut elsewhere)) == relit(&edited, None));
 }
