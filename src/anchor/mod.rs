@@ -219,6 +219,7 @@ impl AnchorSet {
             + self.photon_links.len() * size_of::<Option<AnchorId>>()
             + self.previous_photons.photons.len() * size_of::<crate::photon::Photon>()
             + self.previous_photons.path_start.len() * size_of::<u32>()
+            + self.previous_photons.tree.heap_bytes()
     }
 
     pub fn live_count(&self) -> usize {

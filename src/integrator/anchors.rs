@@ -376,10 +376,7 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (
 /// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it).
 fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap) {
     let q = set.quantizer;
-    set.previous_photons = crate::photon::PhotonPaths {
-        photons: pm.photons.clone(),
-        path_start: pm.path_start.clone(),
-    };
+    set.previous_photons = pm.paths();
     set.photon_links = vec![None; pm.photons.len()];
     let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
     let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_query_order(&positions, |i| {

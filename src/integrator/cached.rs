@@ -179,13 +179,14 @@ pub fn render_in_bands(
         interpolation: None,
     };
     let t = Instant::now();
-    let pm = PhotonMap::trace(
+    let pm = PhotonMap::trace_after(
         ctx.scene,
         ctx.materials,
         params.photons,
         ctx.seed,
         params.photon_bounces,
         params.max_photon_radius,
+        state.anchors.as_ref().map(|a| &a.previous_photons),
     );
     st.photon_tracing = t.elapsed().as_secs_f64();
     st.photons = pm.photons.len() as u64;

@@ -80,6 +80,14 @@ impl PointTree {
         self.points.len()
     }
 
+    /// Bytes the tree holds on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.points.capacity() * size_of::<[f32; 3]>()
+            + self.items.capacity() * size_of::<u32>()
+            + self.axes.capacity()
+            + self.splits.capacity() * size_of::<f32>()
+    }
+
     pub fn is_empty(&self) -> bool {
         self.points.is_empty()
     }

@@ -26,6 +26,7 @@ pub mod knn;
 pub mod precomputed;
 
 use std::f32::consts::PI;
+use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
 use serde::{Deserialize, Serialize};
@@ -53,6 +54,29 @@ pub struct Photon {
 pub struct PhotonPaths {
     pub photons: Vec<Photon>,
     pub path_start: Vec<u32>,
+    /// The kd-tree the map built over these photons' positions: the next map whose
+    /// photons lie where these did (a light's intensity or colour edited, nothing moved)
+    /// uses it instead of building its own. Not saved (a resumed render builds it).
+    #[serde(skip)]
+    pub tree: KeptTree,
+}
+
+/// A kd-tree kept beside the photons it was built over ([`PhotonPaths::tree`]): derived
+/// data, so two are always equal (the photons they index decide).
+#[derive(Debug, Clone, Default)]
+pub struct KeptTree(pub Option<Arc<knn::PointTree>>);
+
+impl PartialEq for KeptTree {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl KeptTree {
+    /// Bytes the tree holds on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.0.as_ref().map_or(0, |t| t.heap_bytes())
+    }
 }
 
 impl PhotonPaths {
@@ -77,7 +101,7 @@ pub struct PhotonMap {
     /// Where each emitted photon's path starts in `photons` (one more entry than paths):
     /// path `i` stored `photons[path_start[i]..path_start[i + 1]]`.
     pub path_start: Vec<u32>,
-    tree: knn::PointTree,
+    tree: Arc<knn::PointTree>,
     /// `photons` in the tree's order, which look-ups read (the knn module doc).
     ordered: Vec<Photon>,
     /// Photons emitted (the divisor of every photon's power).
@@ -266,6 +290,21 @@ impl PhotonMap {
         max_bounces: u32,
         max_radius: f32,
     ) -> PhotonMap {
+        Self::trace_after(frame, m, count, seed, max_bounces, max_radius, None)
+    }
+
+    /// [`PhotonMap::trace`], where `previous` are the last map's photons: if every photon
+    /// lies where its predecessor did, the map uses their kd-tree
+    /// ([`PhotonPaths::tree`]) instead of building one.
+    pub fn trace_after(
+        frame: &FrameScene,
+        m: Materials,
+        count: u32,
+        seed: u32,
+        max_bounces: u32,
+        max_radius: f32,
+        previous: Option<&PhotonPaths>,
+    ) -> PhotonMap {
         let (centre, radius) = sun_sphere(frame);
         // Emitted flux per light.
         let mut sources = Vec::new();
@@ -293,7 +332,7 @@ impl PhotonMap {
         let mut map = PhotonMap {
             photons: Vec::new(),
             path_start: Vec::new(),
-            tree: knn::PointTree::default(),
+            tree: Arc::default(),
             ordered: Vec::new(),
             emitted: count,
             emitted_power,
@@ -340,8 +379,20 @@ impl PhotonMap {
             map.path_start.extend(ends.iter().map(|e| base + e));
             map.photons.extend(photons);
         }
-        let pts: Vec<Vec3> = map.photons.iter().map(|p| p.position).collect();
-        map.tree = knn::PointTree::new(&pts);
+        let same_places = |p: &PhotonPaths| {
+            p.photons.len() == map.photons.len()
+                && p.photons.iter().zip(&map.photons).all(|(a, b)| {
+                    a.position.to_array().map(f32::to_bits)
+                        == b.position.to_array().map(f32::to_bits)
+                })
+        };
+        map.tree = match previous.and_then(|p| p.tree.0.as_ref().filter(|_| same_places(p))) {
+            Some(tree) => tree.clone(),
+            None => {
+                let pts: Vec<Vec3> = map.photons.iter().map(|p| p.position).collect();
+                Arc::new(knn::PointTree::new(&pts))
+            }
+        };
         map.ordered = map.tree.in_tree_order(&map.photons);
         map
     }
@@ -357,6 +408,16 @@ impl PhotonMap {
     /// estimate depends on no photon farther away. The disc reaches the k-th nearest photon
     /// within [`PhotonMap::max_radius`], or that radius where fewer lie within it; the
     /// estimate divides by the part of it on the query's surface ([`SurfaceClip`]).
+    /// The photons, path by path, with the kd-tree over them (what the next frame's map
+    /// compares with and may reuse).
+    pub fn paths(&self) -> PhotonPaths {
+        PhotonPaths {
+            photons: self.photons.clone(),
+            path_start: self.path_start.clone(),
+            tree: KeptTree(Some(self.tree.clone())),
+        }
+    }
+
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);
@@ -651,6 +712,17 @@ mod tests {
     /// The photon map of `g`, every surface black, under a sun of irradiance 1 shining along
     /// `direction`: `photons` photons, none of which bounces.
     fn black_under_a_sun(g: Geometry, direction: Vec3, photons: u32) -> PhotonMap {
+        sun_map(g, direction, 1.0, photons, None)
+    }
+
+    /// [`black_under_a_sun`] with the sun's irradiance `intensity`, traced after `previous`.
+    fn sun_map(
+        g: Geometry,
+        direction: Vec3,
+        intensity: f32,
+        photons: u32,
+        previous: Option<&PhotonPaths>,
+    ) -> PhotonMap {
         let black = Material {
             base_color: Vec4::new(0.0, 0.0, 0.0, 1.0),
             ..Material::default()
@@ -663,7 +735,7 @@ mod tests {
             kind: LightKind::Directional,
             position: Vec3::ZERO,
             direction,
-            intensity: Vec3::ONE,
+            intensity: Vec3::splat(intensity),
             range: None,
         };
         let camera = FrameCamera::look_at(Vec3::new(3.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y, 1.0, 1.0);
@@ -678,7 +750,44 @@ mod tests {
             materials: &surfaces.materials,
             textures: &surfaces.textures,
         };
-        PhotonMap::trace(&frame, m, photons, 3, 8, 0.05)
+        PhotonMap::trace_after(&frame, m, photons, 3, 8, 0.05, previous)
+    }
+
+    /// A map whose photons lie where the last map's did (the sun brighter) uses that map's
+    /// kd-tree, and estimates what a map with its own tree does; one whose photons moved
+    /// (the sun turned) builds its own.
+    #[test]
+    fn a_map_whose_photons_did_not_move_reuses_the_last_ones_tree() {
+        let floor = || {
+            let mut g = Geometry::default();
+            let l = 1.0;
+            quad(
+                &mut g,
+                Vec3::new(-l, 0.0, -l),
+                Vec3::new(-l, 0.0, l),
+                Vec3::new(l, 0.0, l),
+                Vec3::new(l, 0.0, -l),
+            );
+            g
+        };
+        let sun = Vec3::new(-0.6, -0.8, 0.0);
+        let first = sun_map(floor(), sun, 1.0, 20_000, None);
+        let paths = first.paths();
+        let brighter = sun_map(floor(), sun, 2.0, 20_000, Some(&paths));
+        assert!(Arc::ptr_eq(&brighter.tree, &first.tree));
+        let own = sun_map(floor(), sun, 2.0, 20_000, None);
+        assert!(!Arc::ptr_eq(&own.tree, &first.tree));
+        for i in 0..50 {
+            let x = Vec3::new(-0.9 + 0.036 * i as f32, 0.0, 0.3 - 0.01 * i as f32);
+            let (a, b) = (
+                brighter.irradiance_and_radius(x, Vec3::Y, 16),
+                own.irradiance_and_radius(x, Vec3::Y, 16),
+            );
+            assert_eq!((a.0.to_array(), a.1), (b.0.to_array(), b.1), "at {x}");
+            assert!(a.0.y > 0.0);
+        }
+        let turned = sun_map(floor(), Vec3::new(-0.5, -0.8, 0.1), 1.0, 20_000, Some(&paths));
+        assert!(!Arc::ptr_eq(&turned.tree, &first.tree));
     }
 
     /// The example room's dashed seam, reduced: a floor (y = 0, x ≥ 0) meeting a wall (x = 0, facing +x),
