@@ -212,16 +212,75 @@ pub fn stage_exr(path: &Path, img: &FrameImage) -> Result<Staged> {
         AnyChannels::sort(smallvec::SmallVec::from_vec(channels)),
     );
     let image = Image::from_layer(layer);
-    // Blocks are compressed in parallel (on the `exr` crate's own short-lived pool) and
-    // written in increasing line order whatever order they finish in, so the bytes do not
-    // depend on scheduling; with one worker thread asked for, they are compressed in turn.
-    let write = image.write();
-    let write = if rayon::current_num_threads() > 1 {
-        write
-    } else {
-        write.non_parallel()
-    };
-    stage(path, |w| write.to_buffered(w).map_err(|e| e.to_string()))
+    if cfg!(target_endian = "big") {
+        return stage(path, |w| image.write().to_buffered(w).map_err(|e| e.to_string()));
+    }
+    stage(path, |w| write_zip(&image, w).map_err(|e| e.to_string()))
+}
+
+/// Writes `image` (scan lines, ZIP compression) as the `exr` crate writes it — its header,
+/// its blocks' pixel layout, its offset table — with each block deflated by libdeflate
+/// instead of the crate's `miniz_oxide` at a fixed level: the same zlib stream format, made
+/// about three times as fast (the crate's compression was an eighth of a watch-mode relight
+/// of the example). Blocks are compressed in parallel on the render's pool and written in
+/// increasing line order, so the bytes do not depend on scheduling. Little-endian hosts only
+/// (the block bytes are taken as the file's little-endian samples).
+fn write_zip(
+    image: &Image<Layer<AnyChannels<FlatSamples>>>,
+    w: impl std::io::Write + std::io::Seek,
+) -> exr::error::UnitResult {
+    use exr::block::chunk::{Chunk, CompressedBlock, CompressedScanLineBlock};
+    use exr::block::writer::ChunksWriter;
+    use exr::image::write::layers::{LayersWriter, WritableLayers};
+    use rayon::prelude::*;
+    let headers = image.layer_data.infer_headers(&image.attributes);
+    let layers = image.layer_data.create_writer(&headers);
+    let blocks: Vec<_> = exr::block::enumerate_ordered_header_block_indices(&headers).collect();
+    let chunks: Vec<Chunk> = blocks
+        .par_iter()
+        .map(|&(_, index)| {
+            let raw = layers.extract_uncompressed_block(&headers, index);
+            let zipped = zip_block(&raw).filter(|z| z.len() < raw.len());
+            let header = &headers[index.layer];
+            Chunk {
+                layer_index: index.layer,
+                compressed_block: CompressedBlock::ScanLine(CompressedScanLineBlock {
+                    // Stored compressed only where that is smaller (OpenEXR's rule).
+                    compressed_pixels_le: zipped.unwrap_or(raw),
+                    y_coordinate: index.pixel_position.y() as i32
+                        + header.own_attributes.layer_position.y(),
+                }),
+            }
+        })
+        .collect();
+    exr::block::write(w, headers, true, |_, writer| {
+        for ((i, _), chunk) in blocks.iter().zip(chunks) {
+            writer.write_chunk(*i, chunk)?;
+        }
+        Ok(())
+    })
+}
+
+/// OpenEXR's ZIP compression of a block's little-endian bytes: the bytes split into their
+/// even and odd halves, each byte replaced by its difference to the one before (plus 128),
+/// and the result deflated into a zlib stream (`None` if libdeflate fails).
+fn zip_block(raw: &[u8]) -> Option<Vec<u8>> {
+    let half = raw.len().div_ceil(2);
+    let mut bytes = vec![0u8; raw.len()];
+    for (i, &b) in raw.iter().enumerate() {
+        bytes[if i % 2 == 0 { i / 2 } else { half + i / 2 }] = b;
+    }
+    let mut previous = bytes.first().copied().unwrap_or(0);
+    for b in bytes.iter_mut().skip(1) {
+        let sample = *b;
+        *b = sample.wrapping_sub(previous).wrapping_add(128);
+        previous = sample;
+    }
+    let mut deflate = libdeflater::Compressor::new(libdeflater::CompressionLvl::default());
+    let mut out = vec![0u8; deflate.zlib_compress_bound(bytes.len())];
+    let n = deflate.zlib_compress(&bytes, &mut out).ok()?;
+    out.truncate(n);
+    Some(out)
 }
 
 /// Display transform for previews: clamp, then the sRGB curve.

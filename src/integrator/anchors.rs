@@ -618,20 +618,32 @@ fn reuse_histogram(refs: &[u32]) -> [u64; 5] {
 /// The anchor whose strata carry most of a record's irradiance (luminance). Each anchor's
 /// strata are summed in stratum order (a stable sort by anchor keeps it).
 fn dominant(strata: &[Stratum], rad: &[Vec3]) -> Option<AnchorId> {
-    let mut links: Vec<(AnchorId, f32)> = strata
-        .iter()
-        .zip(rad)
-        .filter_map(|(s, r)| s.link().map(|a| (a, luminance(*r))))
-        .collect();
-    links.sort_by_key(|&(a, _)| a);
-    // Ties go to the lower id (the first run), so the choice does not depend on the
-    // strata's order.
-    let mut best: (Option<AnchorId>, f32) = (None, f32::MIN);
-    for run in links.chunk_by(|x, y| x.0 == y.0) {
-        let l = run.iter().fold(0.0, |sum, &(_, l)| sum + l);
-        if l > best.1 {
-            best = (Some(run[0].0), l);
-        }
+    thread_local! {
+        /// Each thread's (anchor, stratum) buffer: a record's links, sorted.
+        static LINKS: std::cell::RefCell<Vec<(AnchorId, u32)>> =
+            const { std::cell::RefCell::new(Vec::new()) };
     }
-    best.0
+    LINKS.with_borrow_mut(|links| {
+        links.clear();
+        links.extend(
+            strata
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| s.link().map(|a| (a, i as u32))),
+        );
+        // By anchor, each anchor's strata in stratum order (what they are summed in).
+        links.sort_unstable();
+        // Ties go to the lower id (the first run), so the choice does not depend on the
+        // strata's order.
+        let mut best: (Option<AnchorId>, f32) = (None, f32::MIN);
+        for run in links.chunk_by(|x, y| x.0 == y.0) {
+            let l = run
+                .iter()
+                .fold(0.0, |sum, &(_, i)| sum + luminance(rad[i as usize]));
+            if l > best.1 {
+                best = (Some(run[0].0), l);
+            }
+        }
+        best.0
+    })
 }
