@@ -537,14 +537,16 @@ impl Renderer {
             let mut log = ShadingLog::default();
             let (mut state, refresh) = if fresh {
                 (carried.take().unwrap_or_default(), Refresh::default())
-            } else if let Some(kept) = self.states.get_mut(&frame) {
+            } else if let Some(kept) = self.states.remove(&frame) {
+                // Taken, not copied: the render leaves the frame's new state (if it fails,
+                // the frame has none kept, and its next render starts from a neighbour's).
                 let refresh = Refresh {
                     relight_only: rule == Some(Rule::Relight),
                     albedo: kept.materials_epoch != epoch,
                 };
-                // The render logs its rays afresh (the kept log is replaced below).
-                log = std::mem::take(&mut kept.log);
-                (kept.state.clone(), refresh)
+                // The render replays the kept log and logs its rays afresh.
+                log = kept.log;
+                (kept.state, refresh)
             } else if let Some(s) = carried.take() {
                 (s, Refresh::default())
             } else {

@@ -512,12 +512,9 @@ impl PhotonMap {
                 let a = slice(&self.photons, &self.path_start, i);
                 let b = slice(&previous.photons, &previous.path_start, i);
                 let same = a.len() == b.len() && a.iter().zip(b).all(|(x, y)| bits(x) == bits(y));
-                let moved: Vec<Vec3> = if same {
-                    Vec::new()
-                } else {
-                    a.iter().chain(b).map(|p| p.position).collect()
-                };
-                moved
+                let moved = if same { &[][..] } else { a };
+                let was = if same { &[][..] } else { b };
+                moved.iter().chain(was).map(|p| p.position)
             })
             .collect()
     }
