@@ -18,9 +18,16 @@
 //! material whose key is unchanged — after a material edit, all samples but those on the
 //! edited material — and computes the others (their shadow rays answered from the log).
 //!
-//! Size: 12 bytes per camera sample and pixel centre, 28 more per sample, 8 per shadow ray
-//! (about 57 MB for the example's 320×240 at 16 samples); watch mode keeps it beside the
-//! frame's state within the state memory budget, and drops it where it does not fit.
+//! And it keeps each cache read's valid records with their interpolation weights, under a
+//! key of everything that decides them (`IrradianceCache::interpolation_key`: the records'
+//! positions, normals, reaches and enclosure, and the error thresholds). A relight whose
+//! cache has the key of the log reads the records' new values with the logged weights
+//! instead of searching the cache — the same sums, in the same order.
+//!
+//! Size: 12 bytes per camera sample and pixel centre, 28 more per sample, 8 per shadow ray,
+//! 4 per cache read and 8 per record valid there (about 62 MB for the example's 320×240 at
+//! 16 samples), kept as the rows that logged it; watch mode keeps it beside the frame's
+//! state within the state memory budget, and drops it where it does not fit.
 
 use crate::accel::Hit;
 use crate::bsdf::Lobes;
