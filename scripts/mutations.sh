@@ -30,11 +30,12 @@ declare -A TESTS=(
   [replay-without-ray-check]="watch::a_relight_that_replays"
   [replay-direct-without-keys]="watch::a_relight_that_replays"
   [replay-reads-without-key]="watch::a_relight_that_replays"
+  [replay-emitters-without-pick-check]="watch::a_relight_that_replays"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
   ray-offsets-shrunk glossy-through-albedo replay-without-ray-check replay-direct-without-keys
-  replay-reads-without-key)
+  replay-reads-without-key replay-emitters-without-pick-check)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

@@ -297,6 +297,96 @@ pub struct ShadowRays<'a> {
     next: usize,
     /// Where this render's answers are logged.
     log: Option<&'a mut Vec<u64>>,
+    /// The emitter samples an earlier render logged at this point, and what of them holds.
+    known_emitters: &'a [EmitterSample],
+    reuse: Reuse,
+    /// Where this render's emitter samples are logged.
+    emitter_log: Option<&'a mut Vec<EmitterSample>>,
+}
+
+/// What of a logged [`EmitterSample`] a relight may use where its emitter pick is the
+/// logged one (the same emitter, with the same probability).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Reuse {
+    /// Nothing: the sample is computed afresh.
+    #[default]
+    None,
+    /// The surface is the logged one (its shading normal, the direction to the sampled
+    /// point and the geometric factor), but its BRDF may differ: the BRDF is evaluated again.
+    Surface,
+    /// The BRDF too: only the emitter's emission is read again.
+    Brdf,
+}
+
+/// One emitter sample of [`direct_light`] as a relight reads it back (watch mode's log,
+/// [`crate::integrator::replay`]): the emitter picked and its probability, how far the
+/// sample got, the direction and geometric factor, the BRDF value, where on the emitter,
+/// and its shadow ray's log entry. 64 bytes.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct EmitterSample {
+    /// The emitter's index (low 29 bits), the stage reached (bits 30–31: [`STAGE_GEOMETRY`],
+    /// [`STAGE_BRDF`], [`STAGE_SHADOW`]) and whether the light was weighted against a BRDF
+    /// sample (bit 29).
+    packed: u32,
+    p_pick: f32,
+    wi: Vec3,
+    /// cos θx cos θy (area / r²) / p_pick × the MIS weight.
+    scale: f32,
+    f: Lobes,
+    bc: glam::Vec2,
+    shadow: u64,
+}
+
+const _: () = assert!(size_of::<EmitterSample>() == 64);
+
+/// Stopped before the BRDF: facing away, or degenerate.
+const STAGE_GEOMETRY: u32 = 0;
+/// Stopped at a BRDF value of zero (no shadow ray).
+const STAGE_BRDF: u32 = 1;
+/// A shadow ray was cast (`shadow` is its entry).
+const STAGE_SHADOW: u32 = 2;
+const MIS_BIT: u32 = 1 << 29;
+const EMITTER_MASK: u32 = MIS_BIT - 1;
+
+impl EmitterSample {
+    fn new(emitter: usize, p_pick: f32, mis: bool) -> Self {
+        EmitterSample {
+            packed: (emitter as u32 & EMITTER_MASK) | if mis { MIS_BIT } else { 0 },
+            p_pick,
+            ..Default::default()
+        }
+    }
+
+    fn stage(&self) -> u32 {
+        self.packed >> 30
+    }
+
+    fn at(mut self, stage: u32) -> Self {
+        self.packed = (self.packed & !(3 << 30)) | (stage << 30);
+        self
+    }
+
+    /// Whether it was logged for the pick `(emitter, p_pick)` under `sampling`.
+    fn is_pick(&self, emitter: usize, p_pick: f32, mis: bool) -> bool {
+        emitter < EMITTER_MASK as usize
+            && self.packed & EMITTER_MASK == emitter as u32
+            && self.p_pick.to_bits() == p_pick.to_bits()
+            && (self.packed & MIS_BIT != 0) == mis
+    }
+
+    /// Inverts the logged shadow ray's answer. For the test that a relight reads them.
+    #[doc(hidden)]
+    pub fn invert_shadow(&mut self) {
+        if self.stage() == STAGE_SHADOW {
+            self.shadow ^= 1;
+        }
+    }
+
+    /// Sets every logged BRDF value to zero. For the test that a relight reads them.
+    #[doc(hidden)]
+    pub fn clear_brdf(&mut self) {
+        self.f = Lobes::ZERO;
+    }
 }
 
 impl<'a> ShadowRays<'a> {
@@ -307,6 +397,9 @@ impl<'a> ShadowRays<'a> {
             known: &[],
             next: 0,
             log: None,
+            known_emitters: &[],
+            reuse: Reuse::None,
+            emitter_log: None,
         }
     }
 
@@ -318,11 +411,52 @@ impl<'a> ShadowRays<'a> {
             known,
             next: 0,
             log,
+            known_emitters: &[],
+            reuse: Reuse::None,
+            emitter_log: None,
+        }
+    }
+
+    /// The same, where an earlier render logged the point's emitter samples `known` (used as
+    /// `reuse` allows) and this one logs its own into `log`.
+    pub fn with_emitters(
+        self,
+        known: &'a [EmitterSample],
+        reuse: Reuse,
+        log: Option<&'a mut Vec<EmitterSample>>,
+    ) -> Self {
+        ShadowRays {
+            known_emitters: known,
+            reuse,
+            emitter_log: log,
+            ..self
+        }
+    }
+
+    /// A logged shadow ray's answer, for the same ray cast again: counted, logged, and
+    /// the known answers' place moved past it as [`ShadowRays::occluded`] does.
+    fn replay(&mut self, entry: u64) -> bool {
+        *self.cast += 1;
+        self.next += 1;
+        if let Some(log) = self.log.as_deref_mut() {
+            log.push(entry);
+        }
+        entry & 1 == 1
+    }
+
+    fn log_emitter(&mut self, e: EmitterSample) {
+        if let Some(log) = self.emitter_log.as_deref_mut() {
+            log.push(e);
         }
     }
 
     /// Whether something blocks the ray `o + t·dir`, `0 < t < tmax`.
     fn occluded(&mut self, frame: &FrameScene, o: Vec3, dir: Vec3, tmax: f32) -> bool {
+        self.occluded_entry(frame, o, dir, tmax) & 1 == 1
+    }
+
+    /// [`ShadowRays::occluded`], as its log entry (0 | the answer where nothing is logged).
+    fn occluded_entry(&mut self, frame: &FrameScene, o: Vec3, dir: Vec3, tmax: f32) -> u64 {
         *self.cast += 1;
         let trace = || {
             frame.accel.occluded(
@@ -334,7 +468,7 @@ impl<'a> ShadowRays<'a> {
             )
         };
         if self.log.is_none() && self.known.is_empty() {
-            return trace();
+            return u64::from(trace());
         }
         let key = Self::entry(o, dir, tmax, false);
         let answer = match self.known.get(self.next) {
@@ -342,10 +476,11 @@ impl<'a> ShadowRays<'a> {
             _ => trace(),
         };
         self.next += 1;
+        let entry = key | u64::from(answer);
         if let Some(log) = self.log.as_deref_mut() {
-            log.push(key | u64::from(answer));
+            log.push(entry);
         }
-        answer
+        entry
     }
 
     /// A log entry: a 63-bit hash of the ray's bits (origin, direction, length), the answer
@@ -465,12 +600,51 @@ pub fn direct_light(
         return out;
     }
     let mut area = Lobes::ZERO;
+    let mis = sampling == LightSampling::Mis;
     for j in 0..n {
         let i = index * n + j;
         let Some((k, p_pick)) = frame.emitters.pick(sampler.get(i, dim)) else {
             break;
         };
         let em = &frame.emitters.list[k];
+        // A relight's logged sample of the same pick: what `reuse` allows is read back.
+        let known = shadow
+            .known_emitters
+            .get(j as usize)
+            .filter(|e| e.is_pick(k, p_pick, mis));
+        let reuse = match (known, shadow.reuse) {
+            (Some(_), Reuse::Surface) if mis => Reuse::None,
+            (Some(_), r) => r,
+            (None, _) => Reuse::None,
+        };
+        if let (Some(&e), Reuse::Surface | Reuse::Brdf) = (known, reuse) {
+            let f = match (e.stage(), reuse) {
+                (STAGE_GEOMETRY, _) => Lobes::ZERO,
+                (_, Reuse::Brdf) => e.f,
+                _ => bsdf.eval(ns, wo, e.wi),
+            };
+            match e.stage() {
+                STAGE_GEOMETRY => {
+                    shadow.log_emitter(e);
+                    continue;
+                }
+                _ if f.sum() == Vec3::ZERO => {
+                    shadow.log_emitter(EmitterSample { f, ..e }.at(STAGE_BRDF));
+                    continue;
+                }
+                STAGE_SHADOW => {
+                    shadow.log_emitter(EmitterSample { f, ..e });
+                    if !shadow.replay(e.shadow) {
+                        let l_e = frame.emitted_radiance(em, e.bc);
+                        area += f.scale(l_e * e.scale);
+                    }
+                    continue;
+                }
+                // The BRDF was zero there and is not now: the shadow ray was never cast.
+                _ => {}
+            }
+        }
+        let mut logged = EmitterSample::new(k, p_pick, mis);
         let g = frame.geometry(em.motion);
         let tri = &g.triangles[em.triangle as usize];
         // Uniform point on the triangle (Shirley's square-root parameterisation), with the
@@ -481,6 +655,7 @@ pub fn direct_light(
         let bc = uniform_barycentric(u1, u2);
         let (ny, _) = face_normal_area(tri);
         let Some(seg) = x.spawn_to(y, y_error, ny) else {
+            shadow.log_emitter(logged);
             continue;
         };
         let (r, wi) = (seg.length, seg.dir);
@@ -488,18 +663,23 @@ pub fn direct_light(
         let cos_y = -ny.dot(wi);
         let cos_y = if em.double_sided { cos_y.abs() } else { cos_y };
         if cos_x <= 0.0 || cos_y <= 0.0 || x.ng.dot(wi) <= 0.0 || !(r > 0.0) {
-            continue;
-        }
-        let f = bsdf.eval(ns, wo, wi);
-        if f.sum() == Vec3::ZERO {
-            continue;
-        }
-        if shadow.occluded(frame, seg.origin, wi, seg.tmax) {
+            shadow.log_emitter(logged);
             continue;
         }
         // L_e f cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
         // neither tiny nor huge scenes leave f32's range: area / r² is scale-free.
         let ratio = (em.area.sqrt() / r).powi(2);
+        let f = bsdf.eval(ns, wo, wi);
+        logged = EmitterSample {
+            wi,
+            bc,
+            f,
+            ..logged
+        };
+        if f.sum() == Vec3::ZERO {
+            shadow.log_emitter(logged.at(STAGE_BRDF));
+            continue;
+        }
         let weight = match sampling {
             LightSampling::Lights => 1.0,
             LightSampling::Mis => {
@@ -507,8 +687,21 @@ pub fn direct_light(
                 power_heuristic(p_light, bsdf.pdf(ns, wo, wi))
             }
         };
+        let scale = cos_x * cos_y * ratio / p_pick * weight;
+        let entry = shadow.occluded_entry(frame, seg.origin, wi, seg.tmax);
+        shadow.log_emitter(
+            EmitterSample {
+                scale,
+                shadow: entry,
+                ..logged
+            }
+            .at(STAGE_SHADOW),
+        );
+        if entry & 1 == 1 {
+            continue;
+        }
         let l_e = frame.emitted_radiance(em, bc);
-        area += f.scale(l_e * (cos_x * cos_y * ratio / p_pick * weight));
+        area += f.scale(l_e * scale);
     }
     out + area.scale(Vec3::splat(1.0 / n as f32))
 }

@@ -213,7 +213,9 @@ pub fn stage_exr(path: &Path, img: &FrameImage) -> Result<Staged> {
     );
     let image = Image::from_layer(layer);
     if cfg!(target_endian = "big") {
-        return stage(path, |w| image.write().to_buffered(w).map_err(|e| e.to_string()));
+        return stage(path, |w| {
+            image.write().to_buffered(w).map_err(|e| e.to_string())
+        });
     }
     stage(path, |w| write_zip(&image, w).map_err(|e| e.to_string()))
 }

@@ -167,7 +167,9 @@ fn shuffle(index: u32, seed: u32) -> u32 {
 fn scrambled(shuffled_rev: u32, dim: u32, seed: u32) -> f32 {
     use sobol_burley::parts::{hash, owen_scramble_rev, sobol_rev, u32_to_f32_norm};
     let sobol = match SOBOL_TABLES.get(dim as usize) {
-        Some(t) => t[0][(shuffled_rev >> 24) as usize] ^ t[1][((shuffled_rev >> 16) & 0xff) as usize],
+        Some(t) => {
+            t[0][(shuffled_rev >> 24) as usize] ^ t[1][((shuffled_rev >> 16) & 0xff) as usize]
+        }
         None => sobol_rev(shuffled_rev, dim),
     };
     let scramble = (dim >> 2)

@@ -635,19 +635,44 @@ impl Renderer {
 /// ([`DirectKeys`]): the lights (punctual lights' placement and definitions, every
 /// material's emission, every texture) and each material.
 pub fn direct_keys(new: &Loaded, frame: i32) -> DirectKeys {
+    let textures = &new.signature.textures;
+    // A texture reference with the content of the texture it names.
+    let content = |t: &Option<crate::scene::TextureRef>| {
+        t.as_ref()
+            .map(|t| (format!("{t:?}"), textures.get(t.texture).copied()))
+    };
     let emission: Vec<_> = new
         .scene
         .materials
         .iter()
-        .map(|m| (m.emission, m.emissive_texture))
+        .map(|m| (m.emission, content(&m.emissive_texture)))
         .collect();
+    let normals = |m: &crate::scene::Material| {
+        m.normal_texture
+            .as_ref()
+            .map(|n| (format!("{n:?}"), textures.get(n.texture.texture).copied()))
+    };
     DirectKeys {
-        lights: debug_hash(&(
-            new.signature.lights.get(&frame),
-            &new.signature.textures,
-            emission,
-        )),
-        materials: new.scene.materials.iter().map(debug_hash).collect(),
+        lights: debug_hash(&(new.signature.lights.get(&frame), emission)),
+        materials: new
+            .scene
+            .materials
+            .iter()
+            .map(|m| {
+                debug_hash(&(
+                    m,
+                    content(&m.base_color_texture),
+                    content(&m.metallic_roughness_texture),
+                    normals(m),
+                ))
+            })
+            .collect(),
+        surfaces: new
+            .scene
+            .materials
+            .iter()
+            .map(|m| debug_hash(&(normals(m), m.double_sided, m.alpha_cutoff)))
+            .collect(),
     }
 }
 

@@ -176,15 +176,16 @@ pub fn update(
     });
 
     let t = Instant::now();
+    let at = AnchorPlaces::of(set);
     if albedo {
-        refresh_albedo(ctx, set);
+        refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
+    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true); // every anchor may reflect another colour
     }
-    relink_photons(set, pm);
+    relink_photons(set, pm, &at);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
     let before = cache.len();
@@ -258,15 +259,16 @@ pub fn relight(
         AnchorSet::new(Quantizer::new(lo, hi))
     });
     let t = Instant::now();
+    let at = AnchorPlaces::of(set);
     if albedo {
-        refresh_albedo(ctx, set);
+        refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k));
+    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true);
     }
-    relink_photons(set, pm);
+    relink_photons(set, pm, &at);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
     let att = Attacher {
@@ -297,25 +299,23 @@ pub fn relight(
 /// from just above the anchor back along its normal finds that surface (the anchor keeps
 /// no prim index, §3's 18 bytes). An anchor whose surface the ray does not find again
 /// (its quantised position fell past a triangle's edge) keeps its albedo.
-pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet) {
+pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet, at: &AnchorPlaces) {
     let q = set.quantizer;
     // Far enough above the surface to clear the quantisation and the hit's rounding, near
     // enough that no other surface fits in between.
     let lift = 16.0 * q.max_error() + 1e-6 * ctx.scene.static_radius();
-    let fresh: Vec<Option<Vec3>> = set
-        .anchors
-        .par_iter()
-        .map(|a| {
-            if !a.is_live() {
-                return None;
-            }
-            let n = a.normal();
-            let sp = crate::interaction::trace(ctx.scene, a.position(&q) + lift * n, -n)?;
-            let back = (sp.position - a.position(&q)).length();
-            (sp.hit.motion == Motion::Static && back <= 2.0 * lift)
-                .then(|| sp.albedo(ctx.materials))
-        })
-        .collect();
+    // Traced along a Morton curve: neighbouring rays visit the same BVH nodes.
+    let positions = &at.positions;
+    let fresh: Vec<Option<Vec3>> = crate::photon::knn::map_in_order(&at.order, |i| {
+        let a = &set.anchors[i];
+        if !a.is_live() {
+            return None;
+        }
+        let (x, n) = (positions[i], a.normal());
+        let sp = crate::interaction::trace(ctx.scene, x + lift * n, -n)?;
+        let back = (sp.position - x).length();
+        (sp.hit.motion == Motion::Static && back <= 2.0 * lift).then(|| sp.albedo(ctx.materials))
+    });
     for (i, al) in fresh.into_iter().enumerate() {
         if let Some(al) = al {
             set.anchor_mut(AnchorId(i as u32)).set_albedo(al);
@@ -330,8 +330,12 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet) {
 /// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated
 /// and, per anchor, whether its L_i may differ from the last frame's (estimated again, or a
 /// free slot that a new anchor may fill).
-fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (u64, Vec<bool>) {
-    let q = set.quantizer;
+fn reestimate_anchors(
+    set: &mut AnchorSet,
+    pm: &PhotonMap,
+    anchor_k: usize,
+    at: &AnchorPlaces,
+) -> (u64, Vec<bool>) {
     let changed = pm.changed_since(&set.previous_photons);
     // Where most photons changed (a light or a material edited, a first frame), nearly
     // every anchor is reached by one: each is estimated again without the test.
@@ -341,8 +345,8 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (
         kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
     });
     let set_ref = &*set;
-    let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
-    let fresh: Vec<Option<(Vec3, f32)>> = crate::photon::knn::map_in_query_order(&positions, |i| {
+    let positions = &at.positions;
+    let fresh: Vec<Option<(Vec3, f32)>> = crate::photon::knn::map_in_order(&at.order, |i| {
         let a = &set_ref.anchors[i];
         if !a.is_live() {
             return None;
@@ -372,14 +376,29 @@ fn reestimate_anchors(set: &mut AnchorSet, pm: &PhotonMap, anchor_k: usize) -> (
     (count, changed)
 }
 
+/// The anchors' decoded positions and their Morton order ([`crate::photon::knn::query_order`]),
+/// shared by the frame's batches over every anchor (albedo, L_i, photon links).
+pub struct AnchorPlaces {
+    positions: Vec<Vec3>,
+    order: Vec<u32>,
+}
+
+impl AnchorPlaces {
+    fn of(set: &AnchorSet) -> AnchorPlaces {
+        let q = set.quantizer;
+        let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
+        let order = crate::photon::knn::query_order(&positions);
+        AnchorPlaces { positions, order }
+    }
+}
+
 /// Keeps this frame's photon paths for the next frame's comparison, and links each anchor's
 /// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it).
-fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap) {
-    let q = set.quantizer;
+fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap, at: &AnchorPlaces) {
     set.previous_photons = pm.paths();
     set.photon_links = vec![None; pm.photons.len()];
-    let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
-    let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_query_order(&positions, |i| {
+    let positions = &at.positions;
+    let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_order(&at.order, |i| {
         if set.anchors[i].is_live() {
             pm.nearest(positions[i])
         } else {

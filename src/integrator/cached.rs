@@ -177,6 +177,7 @@ pub fn render_in_bands(
         keys: state.keys,
         spp,
         interpolation: None,
+        emitters: None,
     };
     let t = Instant::now();
     let pm = PhotonMap::trace_after(
@@ -238,6 +239,8 @@ pub fn render_in_bands(
             let a = params.cache.error;
             cache.interpolation_key(&[a, RELAXED * a])
         }),
+        emitters: (replay.log || replay.known.is_some())
+            .then(|| super::replay::emitters_key(ctx.scene)),
         ..replay
     };
     let shading = CachedShading {
@@ -304,8 +307,12 @@ pub fn render_in_bands(
     if let Some(slot) = log_slot.filter(|_| replay.log) {
         let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
         let (keys, interpolation) = (replay.keys.cloned(), replay.interpolation);
+        let emitters = replay.emitters;
         *slot = ShadingLog::join(ctx.width, ctx.height, spp, logs, keys, known)
-            .map(|l| l.with_interpolation_key(interpolation))
+            .map(|l| {
+                l.with_interpolation_key(interpolation)
+                    .with_emitters_key(emitters)
+            })
             .unwrap_or_default();
     }
     let mut used: Vec<u32> = rows.iter().flat_map(|r| r.used.iter().copied()).collect();
@@ -805,10 +812,9 @@ impl CachedShading<'_> {
         row.reads += 1;
         let found = match known {
             Some([]) => None,
-            Some(weights) => {
-                self.cache
-                    .interpolate_known(at.position, at.ns, weights, parts)
-            }
+            Some(weights) => self
+                .cache
+                .interpolate_known(at.position, at.ns, weights, parts),
             None => self
                 .cache
                 .interpolate(at.position, at.ns, a, parts)
@@ -882,12 +888,17 @@ impl Shade for CachedShading<'_> {
         };
         let (hit, centre) = centre_hit(ctx, x, y, self.replay.centre(index));
         if self.replay.log && x == 0 {
-            let shadow = self.replay.known.map_or(
-                (ctx.width * self.light_samples) as usize,
-                |l| l.row_shadow_len(y),
+            let samples = (ctx.width * self.replay.spp * self.light_samples) as usize;
+            let lengths = self
+                .replay
+                .known
+                .map_or((samples, samples), |l| l.row_lengths(y));
+            row.log.reserve(
+                ctx.width,
+                self.replay.spp,
+                lengths,
+                self.replay.logs_camera(),
             );
-            row.log
-                .reserve(ctx.width, self.replay.spp, shadow, self.replay.logs_camera());
         }
         if self.replay.logs_camera() {
             row.log.centre(hit);
@@ -934,9 +945,9 @@ impl Shade for CachedShading<'_> {
             .replay
             .direct(pixel.index, hit.sample, sp.material, cast, &mut row.log);
         let l_direct = reused.unwrap_or_else(|| {
-            let mut shadow = self
-                .replay
-                .shadow_rays(pixel.index, hit.sample, cast, &mut row.log);
+            let mut shadow =
+                self.replay
+                    .shadow_rays(pixel.index, hit.sample, sp.material, cast, &mut row.log);
             hit.direct_light(ctx, &bsdf, self.light_samples, &mut shadow)
         });
         if self.replay.log {

@@ -18,21 +18,31 @@
 //! material whose key is unchanged — after a material edit, all samples but those on the
 //! edited material — and computes the others (their shadow rays answered from the log).
 //!
+//! Where the lights changed but a sample's material did not (a light's intensity or colour
+//! edited), or the material changed but not its surface's shading normals (a colour or a
+//! roughness edited), its direct light is not reused whole but its emitter samples are
+//! ([`EmitterSample`]): a relight picks each sample's emitter again, and where the pick is
+//! the logged one (the same emitter with the same probability — the lights' powers decide
+//! it), reads back the direction, the geometric factor and the shadow answer, and the BRDF
+//! value if the material is unchanged (else evaluates the new BRDF in that direction); only
+//! the emission is read again. Picks that moved are computed afresh. The emitters' key
+//! ([`emitters_key`]) makes sure an index names the same triangle.
+//!
 //! And it keeps each cache read's valid records with their interpolation weights, under a
 //! key of everything that decides them (`IrradianceCache::interpolation_key`: the records'
 //! positions, normals, reaches and enclosure, and the error thresholds). A relight whose
 //! cache has the key of the log reads the records' new values with the logged weights
 //! instead of searching the cache — the same sums, in the same order.
 //!
-//! Size: 12 bytes per camera sample and pixel centre, 28 more per sample, 8 per shadow ray,
-//! 4 per cache read and 8 per record valid there (about 62 MB for the example's 320×240 at
-//! 16 samples), kept as the rows that logged it; watch mode keeps it beside the frame's
+//! Size: 12 bytes per camera sample and pixel centre, 32 more per sample, 8 per shadow ray,
+//! 64 per emitter sample, 4 per cache read and 8 per record valid there, kept as the rows
+//! that logged it; watch mode keeps it beside the frame's
 //! state within the state memory budget, and drops it where it does not fit.
 
 use crate::accel::Hit;
 use crate::bsdf::Lobes;
 use crate::cache::Contribution;
-use crate::interaction::ShadowRays;
+use crate::interaction::{EmitterSample, Reuse, ShadowRays};
 
 /// What a sample's direct light depends on besides the geometry, the camera and the
 /// sampling (which a relight keeps): the lights — punctual lights, emission, textures — as
@@ -41,6 +51,10 @@ use crate::interaction::ShadowRays;
 pub struct DirectKeys {
     pub lights: u64,
     pub materials: Vec<u64>,
+    /// Per material, what its surfaces' shading normals depend on (normal map, sidedness,
+    /// cut-out): where it is unchanged, a logged emitter sample's direction and geometric
+    /// factor still hold.
+    pub surfaces: Vec<u64>,
 }
 
 /// One frame's logged camera hits and shadow answers (module doc), kept as the rows that
@@ -56,6 +70,23 @@ pub struct ShadingLog {
     /// The cache's interpolation key when the rows logged their cache reads
     /// (`IrradianceCache::interpolation_key`; `None`: unknown, never replayed).
     interpolation: Option<u64>,
+    /// The emitters' key when the rows logged their emitter samples ([`emitters_key`]).
+    emitters_key: Option<u64>,
+}
+
+/// A key of the frame's emitters as direct light samples them: each one's triangle, area
+/// and sidedness, in order (the index an emitter sample names).
+pub fn emitters_key(frame: &crate::scene::FrameScene) -> u64 {
+    use std::hash::Hasher;
+    let mut h = std::hash::DefaultHasher::new();
+    h.write_usize(frame.emitters.list.len());
+    for e in &frame.emitters.list {
+        h.write_u8(e.motion as u8);
+        h.write_u32(e.triangle);
+        h.write_u32(e.area.to_bits());
+        h.write_u8(u8::from(e.double_sided));
+    }
+    h.finish()
 }
 
 /// One row's part of a [`ShadingLog`], made as the row is shaded: its pixels in order,
@@ -73,6 +104,11 @@ pub struct RowLog {
     shadow: Vec<u64>,
     /// Per camera sample, its direct light (zero where it hit nothing).
     direct: Vec<Lobes>,
+    /// Per camera sample, where its emitter samples start in `emitters` (and, once joined,
+    /// one more entry for the end).
+    emitter_starts: Vec<u32>,
+    /// The emitter samples of direct light ([`EmitterSample`]).
+    emitters: Vec<EmitterSample>,
     /// Per cache read of the row, in order, where its valid records end in `interp`.
     interp_ends: Vec<u32>,
     /// The cache reads' valid records and weights (none: no record was valid).
@@ -80,16 +116,24 @@ pub struct RowLog {
 }
 
 impl RowLog {
-    /// Room for a row of `width` pixels of `spp` samples, about `shadow` shadow answers, and
-    /// their camera hits unless `camera` is false.
-    pub fn reserve(&mut self, width: u32, spp: u32, shadow: usize, camera: bool) {
+    /// Room for a row of `width` pixels of `spp` samples, about `shadow` shadow answers and
+    /// `emitters` emitter samples, and their camera hits unless `camera` is false.
+    pub fn reserve(
+        &mut self,
+        width: u32,
+        spp: u32,
+        (shadow, emitters): (usize, usize),
+        camera: bool,
+    ) {
         let samples = width as usize * spp as usize;
         if camera {
             self.camera.reserve(samples + width as usize);
         }
         self.starts.reserve(samples + 1);
+        self.emitter_starts.reserve(samples + 1);
         self.direct.reserve(samples);
         self.shadow.reserve(shadow);
+        self.emitters.reserve(emitters);
     }
 
     /// Logs a pixel centre's camera hit.
@@ -104,12 +148,18 @@ impl RowLog {
             self.camera.push(hit);
         }
         self.starts.push(self.shadow.len() as u32);
+        self.emitter_starts.push(self.emitters.len() as u32);
         self.direct.push(Lobes::ZERO);
     }
 
     /// Where the current sample's shadow answers go.
     pub fn shadow(&mut self) -> &mut Vec<u64> {
         &mut self.shadow
+    }
+
+    /// Where the current sample's shadow answers and emitter samples go.
+    fn shadow_and_emitters(&mut self) -> (&mut Vec<u64>, &mut Vec<EmitterSample>) {
+        (&mut self.shadow, &mut self.emitters)
     }
 
     /// Logs the current sample's direct light.
@@ -121,7 +171,8 @@ impl RowLog {
 
     /// Logs a cache read's valid records and weights.
     pub fn interpolation(&mut self, parts: &[Contribution]) {
-        self.interp.extend(parts.iter().map(|c| (c.record, c.weight)));
+        self.interp
+            .extend(parts.iter().map(|c| (c.record, c.weight)));
         self.interp_ends.push(self.interp.len() as u32);
     }
 
@@ -135,16 +186,13 @@ impl RowLog {
         self.interp.get(start..end)
     }
 
-    /// Shadow answers the row logged.
-    pub fn shadow_len(&self) -> usize {
-        self.shadow.len()
-    }
-
     fn heap_bytes(&self) -> usize {
         self.camera.capacity() * size_of::<Option<Hit>>()
             + self.starts.capacity() * size_of::<u32>()
             + self.shadow.capacity() * size_of::<u64>()
             + self.direct.capacity() * size_of::<Lobes>()
+            + self.emitter_starts.capacity() * size_of::<u32>()
+            + self.emitters.capacity() * size_of::<EmitterSample>()
             + self.interp_ends.capacity() * size_of::<u32>()
             + self.interp.capacity() * size_of::<(u32, f32)>()
     }
@@ -174,6 +222,7 @@ impl ShadingLog {
             rows: Vec::with_capacity(height as usize),
             keys,
             interpolation: None,
+            emitters_key: None,
         };
         for mut row in rows {
             let old_row = old.as_mut().and_then(|o| o.next());
@@ -181,13 +230,16 @@ impl ShadingLog {
                 row.camera = old_row?.camera;
             }
             let end = u32::try_from(row.shadow.len()).ok()?;
+            let emitters_end = u32::try_from(row.emitters.len()).ok()?;
             let complete = row.camera.len() == samples + width as usize
                 && row.starts.len() == samples
+                && row.emitter_starts.len() == samples
                 && row.direct.len() == samples;
             if !complete {
                 return None;
             }
             row.starts.push(end);
+            row.emitter_starts.push(emitters_end);
             log.rows.push(row);
         }
         (log.rows.len() == height as usize).then_some(log)
@@ -197,6 +249,14 @@ impl ShadingLog {
     pub fn with_interpolation_key(self, key: Option<u64>) -> ShadingLog {
         ShadingLog {
             interpolation: key,
+            ..self
+        }
+    }
+
+    /// The log with its emitter samples made where the emitters' key was `key`.
+    pub fn with_emitters_key(self, key: Option<u64>) -> ShadingLog {
+        ShadingLog {
+            emitters_key: key,
             ..self
         }
     }
@@ -232,9 +292,27 @@ impl ShadingLog {
         &row.shadow[row.starts[i] as usize..row.starts[i + 1] as usize]
     }
 
-    /// Shadow answers logged in image row `y`.
-    pub fn row_shadow_len(&self, y: u32) -> usize {
-        self.rows.get(y as usize).map_or(0, RowLog::shadow_len)
+    /// Sample `s` of pixel `pixel`'s emitter samples.
+    pub fn emitters(&self, pixel: u32, s: u32) -> &[EmitterSample] {
+        let (row, x) = self.at(pixel);
+        let i = x * self.spp as usize + s as usize;
+        &row.emitters[row.emitter_starts[i] as usize..row.emitter_starts[i + 1] as usize]
+    }
+
+    /// Sets every logged emitter sample's BRDF value to zero. Public for the test that a
+    /// relight reads them.
+    #[doc(hidden)]
+    pub fn clear_emitter_brdfs(&mut self) {
+        for e in self.rows.iter_mut().flat_map(|r| &mut r.emitters) {
+            e.clear_brdf();
+        }
+    }
+
+    /// Shadow answers and emitter samples logged in image row `y`.
+    pub fn row_lengths(&self, y: u32) -> (usize, usize) {
+        self.rows
+            .get(y as usize)
+            .map_or((0, 0), |r| (r.shadow.len(), r.emitters.len()))
     }
 
     /// Sample `s` of pixel `pixel`'s logged direct light.
@@ -246,8 +324,13 @@ impl ShadingLog {
     /// Inverts every logged shadow answer. Public for the test that a relight reads them.
     #[doc(hidden)]
     pub fn invert_shadow_answers(&mut self) {
-        for e in self.rows.iter_mut().flat_map(|r| &mut r.shadow) {
-            *e ^= 1;
+        for r in &mut self.rows {
+            for e in &mut r.shadow {
+                *e ^= 1;
+            }
+            for e in &mut r.emitters {
+                e.invert_shadow();
+            }
         }
     }
 
@@ -290,6 +373,9 @@ pub struct Replay<'a> {
     /// The cache's interpolation key in this pass (`IrradianceCache::interpolation_key`):
     /// where it is the known log's, the cache reads are replayed.
     pub interpolation: Option<u64>,
+    /// The emitters' key in this pass ([`emitters_key`]): where it is the known log's, its
+    /// emitter samples may be reused.
+    pub emitters: Option<u64>,
 }
 
 impl<'a> Replay<'a> {
@@ -317,7 +403,10 @@ impl<'a> Replay<'a> {
         if known.interpolation.is_none() || known.interpolation != self.interpolation {
             return None;
         }
-        known.rows.get((pixel / known.width.max(1)) as usize)?.read(i)
+        known
+            .rows
+            .get((pixel / known.width.max(1)) as usize)?
+            .read(i)
     }
 
     /// Sample `s` of pixel `pixel`'s direct light from the known log, on a surface of
@@ -346,17 +435,23 @@ impl<'a> Replay<'a> {
         let answers = known.shadow(pixel, s);
         *cast += answers.len() as u64;
         if self.log {
-            row.shadow().extend_from_slice(answers);
+            let (shadow, emitters) = row.shadow_and_emitters();
+            shadow.extend_from_slice(answers);
+            emitters.extend_from_slice(known.emitters(pixel, s));
         }
         Some(known.direct(pixel, s))
     }
 
     /// Sample `s` of pixel `pixel`'s shadow rays: answered from the known log, logged into
     /// `row` if this pass logs, counted in `cast`.
+    /// Sample `s` of pixel `pixel`'s shadow rays: answered from the known log, logged into
+    /// `row` if this pass logs, counted in `cast`; with the known log's emitter samples, as
+    /// far as the keys of the lights and of the sample's material allow them.
     pub fn shadow_rays<'r>(
         &self,
         pixel: u32,
         s: u32,
+        material: u32,
         cast: &'r mut u64,
         row: &'r mut RowLog,
     ) -> ShadowRays<'r>
@@ -364,7 +459,34 @@ impl<'a> Replay<'a> {
         'a: 'r,
     {
         let known = self.known.map_or(&[][..], |l| l.shadow(pixel, s));
-        ShadowRays::logged(cast, known, self.log.then(|| row.shadow()))
+        let m = material as usize;
+        let reuse = match (self.known, self.keys) {
+            (Some(l), Some(now)) if l.emitters_key.is_some() && l.emitters_key == self.emitters => {
+                let then = l.keys.as_ref();
+                let same = |k: fn(&DirectKeys) -> &Vec<u64>| {
+                    then.and_then(|t| k(t).get(m))
+                        .is_some_and(|v| k(now).get(m) == Some(v))
+                };
+                if same(|k| &k.materials) && same(|k| &k.surfaces) {
+                    Reuse::Brdf
+                } else if same(|k| &k.surfaces) {
+                    Reuse::Surface
+                } else {
+                    Reuse::None
+                }
+            }
+            _ => Reuse::None,
+        };
+        let emitters = match (self.known, reuse) {
+            (Some(l), Reuse::Surface | Reuse::Brdf) => l.emitters(pixel, s),
+            _ => &[][..],
+        };
+        if self.log {
+            let (shadow, log) = row.shadow_and_emitters();
+            ShadowRays::logged(cast, known, Some(shadow)).with_emitters(emitters, reuse, Some(log))
+        } else {
+            ShadowRays::logged(cast, known, None).with_emitters(emitters, reuse, None)
+        }
     }
 }
 

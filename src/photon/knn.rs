@@ -239,10 +239,15 @@ pub fn query_order(points: &[Vec3]) -> Vec<u32> {
 /// returned in the points' order: for a batch of look-ups at scattered points (gather hits
 /// in record order, anchors in the order they were made).
 pub fn map_in_query_order<T: Send>(points: &[Vec3], f: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    map_in_order(&query_order(points), f)
+}
+
+/// [`map_in_query_order`] with the points' [`query_order`] computed already (several
+/// batches at the same points).
+pub fn map_in_order<T: Send>(order: &[u32], f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     use rayon::prelude::*;
-    let order = query_order(points);
     let answers: Vec<T> = order.par_iter().map(|&i| f(i as usize)).collect();
-    let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(points.len()).collect();
+    let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(order.len()).collect();
     for (&i, a) in order.iter().zip(answers) {
         out[i as usize] = Some(a);
     }

@@ -783,7 +783,13 @@ mod tests {
             assert_eq!((a.0.to_array(), a.1), (b.0.to_array(), b.1), "at {x}");
             assert!(a.0.y > 0.0);
         }
-        let turned = sun_map(floor(), Vec3::new(-0.5, -0.8, 0.1), 1.0, 20_000, Some(&paths));
+        let turned = sun_map(
+            floor(),
+            Vec3::new(-0.5, -0.8, 0.1),
+            1.0,
+            20_000,
+            Some(&paths),
+        );
         assert!(!Arc::ptr_eq(&turned.tree, &first.tree));
     }
 

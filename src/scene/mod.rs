@@ -26,7 +26,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 pub use frame::{CameraRay, FrameCamera, FrameScene, PunctualLight, StaticSet};
-pub use material::{Material, Surfaces, Texture};
+pub use material::{Material, Surfaces, Texture, TextureRef};
 
 use crate::error::{Error, Result};
 use crate::geom::{Geometry, Motion};

@@ -798,4 +798,64 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
     assert!(relit(&edited, Some(&mut flat.clone())) != relit(&edited, None));
     let mut elsewhere = flat.with_interpolation_key(Some(1));
     assert!(relit(&edited, Some(&mut elsewhere)) == relit(&edited, None));
+    // And its emitter samples: with their BRDF values cleared, the lamp's relight (the
+    // other materials' BRDF values reused, the emission read again) comes out otherwise,
+    // and the material edit's is as before (the edited material's BRDF evaluated again, the
+    // others' direct light reused whole); marked as made with other emitters, they are not
+    // read.
+    let mut dark = log.clone();
+    dark.clear_emitter_brdfs();
+    assert!(relit(&edited, Some(&mut dark.clone())) == relit(&edited, None));
+    save_atomic(&gltf, &brighter);
+    let edited = load();
+    assert!(relit(&edited, Some(&mut dark.clone())) != relit(&edited, None));
+    let mut others = dark.with_emitters_key(Some(1));
+    assert!(relit(&edited, Some(&mut others)) == relit(&edited, None));
+
+    // A log made with two emitting materials, relit after one of them grew brighter: the
+    // emitters are picked by their powers, so some samples pick another emitter, or the same
+    // one with another probability, than they were logged with — those light samples are
+    // computed again, the others read back.
+    let mut two = original.clone();
+    two["materials"][1]["emissiveFactor"] = serde_json::json!([0.6, 0.2, 0.2]);
+    save_atomic(&gltf, &two);
+    let before = load();
+    let mut state2 = FrameState::default();
+    let mut log2 = ShadingLog::default();
+    pipeline::render_frame_with(
+        job,
+        &before.scene,
+        &resources,
+        &mut state2,
+        0,
+        &mut pipeline::new_stats(job, 0),
+        Refresh::default(),
+        Some((&mut log2, &direct_keys(&before, 0))),
+    )
+    .unwrap();
+    let mut two_brighter = two.clone();
+    set_lamp(&mut two_brighter, 40.0);
+    save_atomic(&gltf, &two_brighter);
+    let edited = load();
+    let relit2 = |log: Option<&mut ShadingLog>| {
+        let mut s = state2.clone();
+        let keys = direct_keys(&edited, 0);
+        let refresh = Refresh {
+            relight_only: true,
+            albedo: true,
+        };
+        let img = pipeline::render_frame_with(
+            job,
+            &edited.scene,
+            &resources,
+            &mut s,
+            0,
+            &mut pipeline::new_stats(job, 0),
+            refresh,
+            log.map(|l| (l, &keys)),
+        )
+        .unwrap();
+        image_text(&img)
+    };
+    assert!(relit2(Some(&mut log2.clone())) == relit2(None));
 }
