@@ -706,6 +706,17 @@ mod tests {
 
     use crate::geom::push_quad as quad;
 
+    /// The square y = 0, |x|, |z| ≤ `l`, facing +y.
+    fn floor_quad(g: &mut Geometry, l: f32) {
+        quad(
+            g,
+            Vec3::new(-l, 0.0, -l),
+            Vec3::new(-l, 0.0, l),
+            Vec3::new(l, 0.0, l),
+            Vec3::new(l, 0.0, -l),
+        );
+    }
+
     /// The photon map of `g`, every surface black, under a sun of irradiance 1 shining along
     /// `direction`: `photons` photons, none of which bounces.
     fn black_under_a_sun(g: Geometry, direction: Vec3, photons: u32) -> PhotonMap {
@@ -757,14 +768,7 @@ mod tests {
     fn a_map_whose_photons_did_not_move_reuses_the_last_ones_tree() {
         let floor = || {
             let mut g = Geometry::default();
-            let l = 1.0;
-            quad(
-                &mut g,
-                Vec3::new(-l, 0.0, -l),
-                Vec3::new(-l, 0.0, l),
-                Vec3::new(l, 0.0, l),
-                Vec3::new(l, 0.0, -l),
-            );
+            floor_quad(&mut g, 1.0);
             g
         };
         let sun = Vec3::new(-0.6, -0.8, 0.0);
@@ -898,14 +902,7 @@ mod tests {
     #[test]
     fn photons_are_counted_by_the_shading_normal() {
         let mut g = Geometry::default();
-        let l = 2.0;
-        quad(
-            &mut g,
-            Vec3::new(-l, 0.0, -l),
-            Vec3::new(-l, 0.0, l),
-            Vec3::new(l, 0.0, l),
-            Vec3::new(l, 0.0, -l),
-        );
+        floor_quad(&mut g, 2.0);
         let tilt = 50f32.to_radians();
         let ns = Vec3::new(tilt.sin(), tilt.cos(), 0.0);
         for s in &mut g.shading {
