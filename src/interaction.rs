@@ -285,7 +285,8 @@ pub fn camera_hit(
 
 /// A shading point's shadow rays: counted, traced, and logged or answered from a log where
 /// one is kept ([`crate::integrator::replay`]: watch mode's relight, whose geometry is the
-/// logged render's). A logged answer is used only for the ray it was logged for: the ray
+/// logged render's); with them, the point's logged emitter samples ([`EmitterSample`]),
+/// which [`direct_light`] reads back as far as [`Reuse`] allows, and logs afresh. A logged answer is used only for the ray it was logged for: the ray
 /// cast in the same place of the sequence, with the same origin, direction and length (a
 /// light that moved, or an emitter picked differently, casts other rays, which are traced).
 pub struct ShadowRays<'a> {
@@ -666,9 +667,6 @@ pub fn direct_light(
             shadow.log_emitter(logged);
             continue;
         }
-        // L_e f cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
-        // neither tiny nor huge scenes leave f32's range: area / r² is scale-free.
-        let ratio = (em.area.sqrt() / r).powi(2);
         let f = bsdf.eval(ns, wo, wi);
         logged = EmitterSample {
             wi,
@@ -680,6 +678,20 @@ pub fn direct_light(
             shadow.log_emitter(logged.at(STAGE_BRDF));
             continue;
         }
+        let entry = shadow.occluded_entry(frame, seg.origin, wi, seg.tmax);
+        logged = EmitterSample {
+            shadow: entry,
+            ..logged.at(STAGE_SHADOW)
+        };
+        if entry & 1 == 1 {
+            // A relight that reads this sample back finds the same ray blocked: it needs
+            // no factor.
+            shadow.log_emitter(logged);
+            continue;
+        }
+        // L_e f cosθx cosθy / r² / pdf_area, pdf_area = p_pick / area. Ordered so that
+        // neither tiny nor huge scenes leave f32's range: area / r² is scale-free.
+        let ratio = (em.area.sqrt() / r).powi(2);
         let weight = match sampling {
             LightSampling::Lights => 1.0,
             LightSampling::Mis => {
@@ -688,18 +700,7 @@ pub fn direct_light(
             }
         };
         let scale = cos_x * cos_y * ratio / p_pick * weight;
-        let entry = shadow.occluded_entry(frame, seg.origin, wi, seg.tmax);
-        shadow.log_emitter(
-            EmitterSample {
-                scale,
-                shadow: entry,
-                ..logged
-            }
-            .at(STAGE_SHADOW),
-        );
-        if entry & 1 == 1 {
-            continue;
-        }
+        shadow.log_emitter(EmitterSample { scale, ..logged });
         let l_e = frame.emitted_radiance(em, bc);
         area += f.scale(l_e * scale);
     }

@@ -170,17 +170,8 @@ pub fn render_in_bands(
             && refresh.relight_only
             && l.fits(ctx.width, ctx.height, spp)
     });
-    // Only the anchor method's state survives a light or material edit to be relit.
-    let replay = Replay {
-        known: known.as_ref(),
-        log: log_slot.is_some() && method == CachedMethod::Anchors,
-        keys: state.keys,
-        spp,
-        interpolation: None,
-        emitters: None,
-    };
     let t = Instant::now();
-    let pm = PhotonMap::trace_after(
+    let pm = PhotonMap::trace(
         ctx.scene,
         ctx.materials,
         params.photons,
@@ -234,14 +225,20 @@ pub fn render_in_bands(
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
 
+    // Only the anchor method's state survives a light or material edit to be relit. The
+    // keys are those of the cache as it is shaded, after this frame's update.
+    let log = log_slot.is_some() && method == CachedMethod::Anchors;
+    let keyed = log || known.is_some();
     let replay = Replay {
-        interpolation: (replay.log || replay.known.is_some()).then(|| {
+        known: known.as_ref(),
+        log,
+        keys: state.keys,
+        spp,
+        interpolation: keyed.then(|| {
             let a = params.cache.error;
             cache.interpolation_key(&[a, RELAXED * a])
         }),
-        emitters: (replay.log || replay.known.is_some())
-            .then(|| super::replay::emitters_key(ctx.scene)),
-        ..replay
+        emitters: keyed.then(|| super::replay::emitters_key(ctx.scene)),
     };
     let shading = CachedShading {
         cache,

@@ -45,8 +45,9 @@ use crate::cache::Contribution;
 use crate::interaction::{EmitterSample, Reuse, ShadowRays};
 
 /// What a sample's direct light depends on besides the geometry, the camera and the
-/// sampling (which a relight keeps): the lights — punctual lights, emission, textures — as
-/// one key, and each material's content as another.
+/// sampling (which a relight keeps): the lights — punctual lights, every material's
+/// emission and emissive texture — as one key, and each material's content (the textures
+/// it reads included) as another.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct DirectKeys {
     pub lights: u64,
@@ -356,7 +357,9 @@ impl ShadingLog {
     pub fn heap_bytes(&self) -> usize {
         self.rows.iter().map(RowLog::heap_bytes).sum::<usize>()
             + self.rows.capacity() * size_of::<RowLog>()
-            + self.keys.as_ref().map_or(0, |k| k.materials.capacity() * 8)
+            + self.keys.as_ref().map_or(0, |k| {
+                (k.materials.capacity() + k.surfaces.capacity()) * size_of::<u64>()
+            })
     }
 }
 

@@ -281,22 +281,10 @@ impl PhotonMap {
     /// Traces `count` photons from every light of `frame`. `seed` selects the sequence;
     /// it must not depend on the frame for temporal coherence. Look-ups reach
     /// `max_radius` × the static geometry's bounding radius at most
-    /// ([`FrameScene::static_radius`]: the same in every frame).
+    /// ([`FrameScene::static_radius`]: the same in every frame). `previous` are the last
+    /// map's photons, if any: where every photon lies where its predecessor did, the map
+    /// uses their kd-tree ([`PhotonPaths::tree`]) instead of building one.
     pub fn trace(
-        frame: &FrameScene,
-        m: Materials,
-        count: u32,
-        seed: u32,
-        max_bounces: u32,
-        max_radius: f32,
-    ) -> PhotonMap {
-        Self::trace_after(frame, m, count, seed, max_bounces, max_radius, None)
-    }
-
-    /// [`PhotonMap::trace`], where `previous` are the last map's photons: if every photon
-    /// lies where its predecessor did, the map uses their kd-tree
-    /// ([`PhotonPaths::tree`]) instead of building one.
-    pub fn trace_after(
         frame: &FrameScene,
         m: Materials,
         count: u32,
@@ -758,7 +746,7 @@ mod tests {
             materials: &surfaces.materials,
             textures: &surfaces.textures,
         };
-        PhotonMap::trace_after(&frame, m, photons, 3, 8, 0.05, previous)
+        PhotonMap::trace(&frame, m, photons, 3, 8, 0.05, previous)
     }
 
     /// A map whose photons lie where the last map's did (the sun brighter) uses that map's

@@ -346,6 +346,7 @@ fn kept_anchor_estimates_match_fresh_ones() {
         job.seed,
         params.photon_bounces,
         params.max_photon_radius,
+        None,
     );
     let set = state.anchors.as_ref().unwrap();
     let k = params.anchors.anchor_k(params.k as usize);

@@ -198,7 +198,7 @@ fn photon_power_is_conserved() {
             materials: &scene.materials,
             textures: &scene.textures,
         };
-        let pm = PhotonMap::trace(&frame, m, 200_000, 7, bounces, 1.0);
+        let pm = PhotonMap::trace(&frame, m, 200_000, 7, bounces, 1.0, None);
         let emitted = pm.emitted_power.y as f64;
         // Emitted flux of six inward faces of area 4·half² with radiance 1: π·Le·A.
         let area = 24.0 * (half as f64).powi(2);
