@@ -31,11 +31,13 @@ declare -A TESTS=(
   [replay-direct-without-keys]="watch::a_relight_that_replays"
   [replay-reads-without-key]="watch::a_relight_that_replays"
   [replay-emitters-without-pick-check]="watch::a_relight_that_replays"
+  [slack-near-dynamic]="anchor_faults::a_plate"
+  [slack-ignored]="density::a_moving_camera"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
   ray-offsets-shrunk glossy-through-albedo replay-without-ray-check replay-direct-without-keys
-  replay-reads-without-key replay-emitters-without-pick-check)
+  replay-reads-without-key replay-emitters-without-pick-check slack-near-dynamic slack-ignored)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

@@ -308,6 +308,13 @@ pub struct MethodSettings {
     /// contact stop short of it; 0 turns it off. Default 2.
     #[schemars(range(min = 0, max = 1000))]
     pub neighbour_clamp: Option<f32>,
+    /// After the first frame, a pixel centre counts as covered where a cache record made
+    /// for an earlier frame that sees no dynamic prim is valid to this multiple of `error`,
+    /// instead of getting a record of its own: fewer records as the camera moves, read to
+    /// the shading's relaxed threshold (twice `error`); 1 places as densely as on the first
+    /// frame. In [1, 2]. Default 2.
+    #[schemars(range(min = 1, max = 2))]
+    pub coverage_slack: Option<f32>,
     /// `path-trace` samples per pixel. Default: the preset's (64, 256, 1024).
     #[schemars(range(min = 1, max = 1_048_576))]
     pub path_samples: Option<u32>,
@@ -389,6 +396,9 @@ impl MethodSettings {
         if let Some(v) = self.neighbour_clamp {
             p.cache.neighbour_clamp = v;
         }
+        if let Some(v) = self.coverage_slack {
+            p.cache.coverage_slack = v;
+        }
         if let Some(v) = self.path_samples {
             p.path_samples = v;
         }
@@ -468,6 +478,12 @@ impl MethodSettings {
             return bad(
                 "neighbour_clamp",
                 "must be in [0, 1000] (0 turns neighbour clamping off)",
+            );
+        }
+        if !(1.0..=crate::cache::RELAXED).contains(&p.cache.coverage_slack) {
+            return bad(
+                "coverage_slack",
+                "must be in [1, 2] (1: every frame places records as densely as the first)",
             );
         }
         if p.glossy.bucket.strata.iter().any(|&s| s == 0 || s > 256) {

@@ -87,8 +87,8 @@ enum Command {
         /// Sweep one setting: `photons=A,B,..`, `k=..`, `strata=MxN,..`, `error=..`,
         /// `anchor_k=..` (`anchors.k_scale`), `visibility=cpu,gpu`, `glossy=bucketing,importance`
         /// (`glossy_mode`), `glossy_rays=..`, `bucket_strata=MxN,..` (`glossy_bucket_strata`,
-        /// with `glossy_mode` bucketing), `weber=..` (`weber_threshold`) or `neighbour=..`
-        /// (`neighbour_clamp`); each value runs as its own variant of every method. Repeatable.
+        /// with `glossy_mode` bucketing), `weber=..` (`weber_threshold`), `neighbour=..`
+        /// (`neighbour_clamp`) or `slack=..` (`coverage_slack`); each value runs as its own variant of every method. Repeatable.
         #[arg(long)]
         vary: Vec<String>,
         /// The reference method.

@@ -61,6 +61,16 @@ pub struct CacheParams {
     /// Neighbour clamping's slope s: a record's radius is at most a neighbour's plus s times
     /// their distance ([`IrradianceCache::clamp_to_neighbours`]); 0 turns it off. Default 2.
     pub neighbour_clamp: f32,
+    /// Placement counts a pixel centre as covered where a record made for an earlier frame,
+    /// none of whose strata reach a dynamic prim, is valid to this multiple of a (its
+    /// weight above 1/(slack·a)); other records cover to a. As the camera moves, this
+    /// frame's pixel centres fall between the records placed for earlier ones; with 1 each
+    /// such crack gets a record (a gather of every stratum, a pop in the image where it
+    /// appears), above 1 the shading reads the records around it to its relaxed threshold
+    /// ([`RELAXED`]·a), as it reads them for camera samples off the pixel centres. Records
+    /// that see a dynamic prim keep the full density (§4.3: caches added as an object
+    /// nears), so that its contact shadows stay as sharp. In [1, [`RELAXED`]]. Default 2.
+    pub coverage_slack: f32,
 }
 
 impl Default for CacheParams {
@@ -74,6 +84,7 @@ impl Default for CacheParams {
             weber_records: 6,
             weber_threshold: 0.5,
             neighbour_clamp: 2.0,
+            coverage_slack: RELAXED,
         }
     }
 }
@@ -321,8 +332,16 @@ impl IrradianceCache {
     /// facing away, or enclosed ([`Record::enclosed`]).
     /// w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
     fn weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
+        if r.enclosed {
+            return 0.0;
+        }
+        Self::ward_weight(r, x, n)
+    }
+
+    /// [`IrradianceCache::weight`] whether or not the record is enclosed.
+    fn ward_weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
         let ndot = n.dot(r.normal);
-        if ndot <= 0.0 || r.enclosed {
+        if ndot <= 0.0 {
             return 0.0;
         }
         let d = x - r.position;
@@ -457,12 +476,37 @@ impl IrradianceCache {
 
     /// True if some record is valid at (x, n).
     pub fn covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
+        self.covers_with_slack(x, n, a, 1.0, 0)
+    }
+
+    /// True if some record is valid at (x, n) to a, or one whose id is below `older` and
+    /// none of whose strata reach a dynamic prim to `slack`·a
+    /// ([`CacheParams::coverage_slack`]).
+    fn covers_with_slack(&self, x: Vec3, n: Vec3, a: f32, slack: f32, older: u32) -> bool {
         if self.records.is_empty() {
             return false;
         }
+        let (strict, relaxed) = (1.0 / a, 1.0 / (slack * a));
         self.grid.with_candidates(x, |idx| {
-            idx.iter()
-                .any(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
+            idx.iter().any(|&i| {
+                let r = &self.records[i as usize];
+                let w = Self::weight(r, x, n);
+                w > strict
+                    || (w > relaxed
+                        && r.id < older
+                        && !r.strata.iter().any(|s| s.flags() & HIT_DYNAMIC != 0))
+            })
+        })
+    }
+
+    /// True if an enclosed record ([`Record::enclosed`]) would be valid at (x, n) to a
+    /// were it not enclosed.
+    fn within_enclosed(&self, x: Vec3, n: Vec3, a: f32) -> bool {
+        self.grid.with_candidates(x, |idx| {
+            idx.iter().any(|&i| {
+                let r = &self.records[i as usize];
+                r.enclosed && Self::ward_weight(r, x, n) > 1.0 / a
+            })
         })
     }
 
@@ -515,6 +559,9 @@ impl IrradianceCache {
     ) {
         let coarsest = 16u32;
         let mut spacing = coarsest;
+        // The records of earlier frames that see no dynamic prim cover to the slack
+        // threshold; the others, to a.
+        let older = self.next_id;
         loop {
             let level_first = spacing == coarsest;
             let candidates: Vec<(u32, u32)> = (0..height)
@@ -531,7 +578,14 @@ impl IrradianceCache {
                         (y as f32 + 0.5) / height as f32,
                     )
                     .1?;
-                    (!self.covers(sp.position, sp.ns, p.error)).then_some((y * width + x, sp))
+                    let covered = self.covers_with_slack(
+                        sp.position,
+                        sp.ns,
+                        p.error,
+                        p.coverage_slack,
+                        older,
+                    );
+                    (!covered).then_some((y * width + x, sp))
                 })
                 .collect();
             self.add_records(frame, &needed, height, p, frame_number, resolve, timings);
@@ -559,8 +613,11 @@ impl IrradianceCache {
     /// order, the uncovered points with no point taken in the round within
     /// `min_spacing_px` pixels (a record is valid at least that far on its surface), gathers
     /// them together, and leaves the rest to be checked again against the new records. A
-    /// point still uncovered after [`SAMPLE_ROUNDS`] rounds (or under an enclosed record) is
-    /// gathered on the spot when shaded.
+    /// point still uncovered after [`SAMPLE_ROUNDS`] rounds is gathered on the spot when
+    /// shaded, and so is one where an enclosed record ([`Record::enclosed`], of this frame or
+    /// an earlier one) would be valid: its own record would come out enclosed as well (a
+    /// contact, the inside of intersecting meshes), unused, and be placed again each round
+    /// and each frame (on Sponza, ~300 such records a frame, a fifth of its new records).
     #[allow(clippy::too_many_arguments)] // `place`'s
     fn place_at_samples(
         &mut self,
@@ -578,7 +635,10 @@ impl IrradianceCache {
         for _ in 0..SAMPLE_ROUNDS {
             pending = pending
                 .into_par_iter()
-                .filter(|(_, sp)| !self.covers(sp.position, sp.ns, RELAXED * p.error))
+                .filter(|(_, sp)| {
+                    let (x, n, a) = (sp.position, sp.ns, RELAXED * p.error);
+                    !self.covers(x, n, a) && !self.within_enclosed(x, n, a)
+                })
                 .collect();
             if pending.is_empty() {
                 return;

@@ -62,10 +62,13 @@ pub enum Setting {
     Weber(f32),
     /// Neighbour clamping's slope (`neighbour_clamp`; 0 turns it off).
     Neighbour(f32),
+    /// How far records of earlier frames count as covering placement's pixel centres
+    /// (`coverage_slack`; 1: as densely as the first frame).
+    Slack(f32),
 }
 
 const SETTINGS: &str = "expected photons=, k=, strata=MxN, error=, anchor_k=, visibility=, \
-                        glossy=bucketing|importance, glossy_rays=, bucket_strata=MxN, weber= or neighbour= with comma-separated values";
+                        glossy=bucketing|importance, glossy_rays=, bucket_strata=MxN, weber=, neighbour= or slack= with comma-separated values";
 
 impl Plan {
     /// Parses and checks `flags` against `job`: every swept value is checked like a
@@ -165,7 +168,7 @@ impl Setting {
                 let v = v.trim();
                 Setting::parse(key, v).ok_or_else(|| match key {
                     "photons" | "k" | "strata" | "error" | "anchor_k" | "visibility" | "glossy"
-                    | "glossy_rays" | "bucket_strata" | "weber" | "neighbour" => {
+                    | "glossy_rays" | "bucket_strata" | "weber" | "neighbour" | "slack" => {
                         format!("{v:?} is not a value of {key} ({SETTINGS})")
                     }
                     _ => format!("unknown setting {key:?}: {SETTINGS}"),
@@ -202,6 +205,7 @@ impl Setting {
             }
             "weber" => Setting::Weber(v.parse().ok()?),
             "neighbour" => Setting::Neighbour(v.parse().ok()?),
+            "slack" => Setting::Slack(v.parse().ok()?),
             _ => return None,
         })
     }
@@ -223,6 +227,7 @@ impl Setting {
             }
             Setting::Weber(v) => m.weber_threshold = Some(v),
             Setting::Neighbour(v) => m.neighbour_clamp = Some(v),
+            Setting::Slack(v) => m.coverage_slack = Some(v),
         }
     }
 
@@ -240,6 +245,7 @@ impl Setting {
             Setting::BucketStrata([m, n]) => format!("bucket_strata={m}x{n}"),
             Setting::Weber(v) => format!("weber={v}"),
             Setting::Neighbour(v) => format!("neighbour={v}"),
+            Setting::Slack(v) => format!("slack={v}"),
         }
     }
 }
