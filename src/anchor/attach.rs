@@ -125,6 +125,12 @@ impl Attacher<'_> {
         search
     }
 
+    /// The anchor an attachment of `sp` would link to among the existing anchors (step 1,
+    /// read-only: nothing is made or linked), if one is acceptable.
+    pub fn find(&self, set: &AnchorSet, sp: &SurfacePoint) -> Option<AnchorId> {
+        self.search(set, sp).found
+    }
+
     /// Step 2 (module doc) for a hit whose search found no anchor: the anchor its photon
     /// links to since the search, else an acceptable one among the three nearest within
     /// D_max of the anchors before this batch (all rejected in step 1) and those this batch

@@ -23,6 +23,7 @@ use super::bucket::{BucketParams, BucketPlan};
 use super::replay::{DirectKeys, Replay, RowLog, ShadingLog};
 use super::{Accumulator, CameraHit, FrameContext, FrameImage, GiParams, RenderCounts, Shade};
 use crate::accel::Hit;
+use crate::anchor::attach::Attacher;
 use crate::anchor::{AnchorId, AnchorSet};
 use crate::bsdf::Lobes;
 use crate::cache::directional::Directional;
@@ -51,6 +52,11 @@ pub enum CachedMethod {
 pub enum GatherEstimate<'a> {
     PhotonMap(&'a PhotonMap, usize),
     Precomputed(&'a PrecomputedIrradiance),
+    /// `anchors`, for the gathers of pixel samples no record covers: a static hit reflects
+    /// the light of the anchor Pseudocode 1 would link it to (§3.1's reuse tests, the same
+    /// search as a record's hit; no anchor is made or linked), as a record's stratum would;
+    /// a dynamic hit, or one no existing anchor is acceptable for, the photons' estimate.
+    Anchors(&'a Attacher<'a>, &'a AnchorSet),
 }
 
 impl GatherEstimate<'_> {
@@ -60,6 +66,15 @@ impl GatherEstimate<'_> {
         let e = match *self {
             GatherEstimate::PhotonMap(pm, k) => pm.irradiance(sp.position, sp.ng, k),
             GatherEstimate::Precomputed(pc) => pc.lookup(sp.position, sp.ng),
+            GatherEstimate::Anchors(att, set) => {
+                let anchor = (sp.hit.motion == Motion::Static)
+                    .then(|| att.find(set, sp))
+                    .flatten();
+                if let Some(id) = anchor {
+                    return set.anchor(id).radiance();
+                }
+                att.pm.irradiance(sp.position, sp.ng, att.k)
+            }
         };
         sp.albedo(m) * FRAC_1_PI * e
     }
@@ -240,10 +255,25 @@ pub fn render_in_bands(
         }),
         emitters: keyed.then(|| super::replay::emitters_key(ctx.scene)),
     };
+    // Pixel samples no record covers read the anchors at their gathers' hits.
+    let attacher = (method == CachedMethod::Anchors).then(|| Attacher {
+        frame: ctx.scene,
+        m: ctx.materials,
+        pm: &pm,
+        k: params.k as usize,
+        params: params.anchors,
+        scale: ctx.scene.static_radius(),
+        importance: None,
+    });
+    let uncached = match (&attacher, state.anchors.as_ref()) {
+        (Some(att), Some(set)) => GatherEstimate::Anchors(att, set),
+        _ => estimate,
+    };
     let shading = CachedShading {
         cache,
         anchors: state.anchors.as_ref(),
         estimate,
+        uncached,
         params: &params.cache,
         light_samples,
         glossy: params.glossy,
@@ -473,7 +503,10 @@ pub struct CachedShading<'a> {
     pub cache: &'a IrradianceCache,
     /// `anchors`: the anchors, for bucketing.
     pub anchors: Option<&'a AnchorSet>,
+    /// The estimate at glossy rays' hits.
     pub estimate: GatherEstimate<'a>,
+    /// The estimate at the hits of the gathers of pixel samples no record covers.
+    pub uncached: GatherEstimate<'a>,
     pub params: &'a CacheParams,
     pub light_samples: u32,
     pub glossy: GlossyParams,
@@ -853,7 +886,7 @@ impl CachedShading<'_> {
                     .iter()
                     .map(|h| {
                         h.sp.as_ref()
-                            .map_or(Vec3::ZERO, |sp| self.estimate.radiance(sp, ctx.materials))
+                            .map_or(Vec3::ZERO, |sp| self.uncached.radiance(sp, ctx.materials))
                     })
                     .collect();
                 let e = radiance.iter().sum::<Vec3>() * (PI / strata);
