@@ -28,6 +28,60 @@ pub(super) fn render_sequence(
         .collect()
 }
 
+/// The scene, resources and frame state after rendering `frames` of `job` in order, with
+/// each frame's stats.
+fn state_after(
+    job: &anchorage::job::Job,
+    frames: impl IntoIterator<Item = i32>,
+) -> (
+    anchorage::scene::Scene,
+    anchorage::session::Resources,
+    FrameState,
+    Vec<anchorage::stats::FrameStats>,
+) {
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(job, &scene).unwrap();
+    let mut state = FrameState::default();
+    let stats = frames
+        .into_iter()
+        .map(|f| {
+            let mut st = pipeline::new_stats(job, f);
+            pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut st).unwrap();
+            st
+        })
+        .collect();
+    (scene, resources, state, stats)
+}
+
+/// Frame `frame` of `job` evaluated, and the photons its render traces.
+fn frame_photons(
+    job: &anchorage::job::Job,
+    scene: &anchorage::scene::Scene,
+    resources: &anchorage::session::Resources,
+    frame: i32,
+) -> (anchorage::scene::FrameScene, anchorage::photon::PhotonMap) {
+    let (fs, _) = scene.evaluate(
+        job.time_of(frame),
+        job.width as f32 / job.height as f32,
+        &resources.statics,
+    );
+    let m = anchorage::interaction::Materials {
+        materials: &scene.materials,
+        textures: &scene.textures,
+    };
+    let params = job.method.params();
+    let pm = anchorage::photon::PhotonMap::trace(
+        &fs,
+        m,
+        params.photons,
+        job.seed,
+        params.photon_bounces,
+        params.max_photon_radius,
+        None,
+    );
+    (fs, pm)
+}
+
 pub(super) fn example(method: &str, extra: &str) -> anchorage::job::Job {
     job_from_json(
         &example_job(),
@@ -122,32 +176,15 @@ fn a_gather_no_record_covers_reads_the_anchors_its_hits_would_link_to() {
     use anchorage::geom::Motion;
     use anchorage::integrator::cached::GatherEstimate;
     use anchorage::interaction::{Materials, camera_hit};
-    use anchorage::photon::PhotonMap;
     let job = example("anchors", "");
-    let scene = job.load_scene().unwrap();
-    let resources = pipeline::new_resources(&job, &scene).unwrap();
-    let mut state = FrameState::default();
     let last = 13;
-    for f in 10..=last {
-        let mut stats = pipeline::new_stats(&job, f);
-        pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut stats).unwrap();
-    }
-    let t = job.time_of(last);
-    let (fs, _) = scene.evaluate(t, job.width as f32 / job.height as f32, &resources.statics);
+    let (scene, resources, state, _) = state_after(&job, 10..=last);
+    let (fs, pm) = frame_photons(&job, &scene, &resources, last);
     let m = Materials {
         materials: &scene.materials,
         textures: &scene.textures,
     };
     let params = job.method.params();
-    let pm = PhotonMap::trace(
-        &fs,
-        m,
-        params.photons,
-        job.seed,
-        params.photon_bounces,
-        params.max_photon_radius,
-        None,
-    );
     let set = state.anchors.as_ref().unwrap();
     let k = params.k as usize;
     let att = Attacher {
@@ -414,38 +451,16 @@ fn d_max_absolute_and_importance_density() {
 /// what a fresh estimate from the current frame's photons gives (to RGBE's precision).
 #[test]
 fn kept_anchor_estimates_match_fresh_ones() {
-    use anchorage::interaction::Materials;
-    use anchorage::photon::PhotonMap;
     let job = example("anchors", "");
-    let scene = job.load_scene().unwrap();
-    let resources = pipeline::new_resources(&job, &scene).unwrap();
-    let mut state = FrameState::default();
-    let mut kept = 0;
     let last = 13;
-    for f in 10..=last {
-        let mut stats = pipeline::new_stats(&job, f);
-        pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut stats).unwrap();
-        if f > 10 {
-            kept += stats.counts.anchors - stats.counts.anchors_reestimated;
-        }
-    }
+    let (scene, resources, state, stats) = state_after(&job, 10..=last);
+    let kept: u64 = stats[1..]
+        .iter()
+        .map(|st| st.counts.anchors - st.counts.anchors_reestimated)
+        .sum();
     assert!(kept > 1000, "{kept} estimates kept");
-    let t = job.time_of(last);
-    let (fs, _) = scene.evaluate(t, job.width as f32 / job.height as f32, &resources.statics);
-    let m = Materials {
-        materials: &scene.materials,
-        textures: &scene.textures,
-    };
+    let (_, pm) = frame_photons(&job, &scene, &resources, last);
     let params = job.method.params();
-    let pm = PhotonMap::trace(
-        &fs,
-        m,
-        params.photons,
-        job.seed,
-        params.photon_bounces,
-        params.max_photon_radius,
-        None,
-    );
     let set = state.anchors.as_ref().unwrap();
     let k = params.anchors.anchor_k(params.k as usize);
     let mut checked = 0;
