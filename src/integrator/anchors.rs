@@ -340,6 +340,12 @@ fn reestimate_anchors(
     // Where most photons changed (a light or a material edited, a first frame), nearly
     // every anchor is reached by one: each is estimated again without the test.
     let all = changed.len() >= pm.photons.len() / 2;
+    // The search within an anchor's last reach first finds its k photons there where they
+    // lie as densely as before; where most of them moved (a material edit: Russian roulette
+    // follows the albedo), most anchors find fewer there and search again unbounded, so
+    // those search unbounded at once (the same estimates either way). Where every photon
+    // lies where it did (a light's intensity or colour edited), the reach holds exactly k.
+    let near = !all || pm.same_places_as(&set.previous_photons);
     let changed_tree = (!changed.is_empty() && !all).then(|| {
         let pts: Vec<[f32; 3]> = changed.iter().map(|p| p.to_array()).collect();
         kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
@@ -360,6 +366,7 @@ fn reestimate_anchors(
                     .distance
                     > r2
             });
+        let r2 = if near { r2 } else { f32::INFINITY };
         (!untouched).then(|| pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2))
     });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();

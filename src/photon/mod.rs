@@ -406,6 +406,17 @@ impl PhotonMap {
         }
     }
 
+    /// True if this map's photons lie where `previous`'s did, every one (the map reuses that
+    /// map's kd-tree: [`PhotonMap::trace`]); false where that is unknown (a map read from a
+    /// checkpoint keeps no tree).
+    pub fn same_places_as(&self, previous: &PhotonPaths) -> bool {
+        previous
+            .tree
+            .0
+            .as_ref()
+            .is_some_and(|t| Arc::ptr_eq(t, &self.tree))
+    }
+
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);
