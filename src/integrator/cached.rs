@@ -255,7 +255,8 @@ pub fn render_in_bands(
         }),
         emitters: keyed.then(|| super::replay::emitters_key(ctx.scene)),
     };
-    // Pixel samples no record covers read the anchors at their gathers' hits.
+    // Pixel samples no record covers read the anchors at their gathers' hits, within the
+    // constant D_max (importance-driven density's importons are the update's, not kept).
     let attacher = (method == CachedMethod::Anchors).then(|| Attacher {
         frame: ctx.scene,
         m: ctx.materials,
