@@ -23,7 +23,8 @@ pub struct Timings {
     /// final gathering (tracing gather rays) and cache interpolation (shading from the cache,
     /// glossy bucketing and reflection rays included). Pixel samples no record covers gather
     /// on the spot: their rays count as final gathering, their photon look-ups (`anchors`:
-    /// anchor searches) as irradiance estimation, not as interpolation. Zero for methods without that stage.
+    /// anchor searches) as irradiance estimation, not as interpolation. Zero for methods
+    /// without that stage.
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
     pub final_gathering: f64,

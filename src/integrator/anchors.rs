@@ -366,8 +366,10 @@ fn reestimate_anchors(
                     .distance
                     > r2
             });
-        let r2 = if near { r2 } else { f32::INFINITY };
-        (!untouched).then(|| pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2))
+        (!untouched).then(|| match near {
+            true => pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2),
+            false => pm.irradiance_and_radius(x, a.normal(), anchor_k),
+        })
     });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
     let mut count = 0;

@@ -14,22 +14,10 @@ pub(super) fn render_sequence(
     job: &anchorage::job::Job,
     frames: impl IntoIterator<Item = i32>,
 ) -> Vec<(FrameImage, anchorage::stats::FrameStats)> {
-    let scene = job.load_scene().unwrap();
-    let resources = pipeline::new_resources(job, &scene).unwrap();
-    let mut state = FrameState::default();
-    frames
-        .into_iter()
-        .map(|f| {
-            let mut stats = pipeline::new_stats(job, f);
-            let img =
-                pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut stats).unwrap();
-            (img, stats)
-        })
-        .collect()
+    state_after(job, frames).3
 }
 
-/// The scene, resources and frame state after rendering `frames` of `job` in order, with
-/// each frame's stats.
+/// [`render_sequence`] with the scene, resources and frame state it leaves.
 fn state_after(
     job: &anchorage::job::Job,
     frames: impl IntoIterator<Item = i32>,
@@ -37,20 +25,21 @@ fn state_after(
     anchorage::scene::Scene,
     anchorage::session::Resources,
     FrameState,
-    Vec<anchorage::stats::FrameStats>,
+    Vec<(FrameImage, anchorage::stats::FrameStats)>,
 ) {
     let scene = job.load_scene().unwrap();
     let resources = pipeline::new_resources(job, &scene).unwrap();
     let mut state = FrameState::default();
-    let stats = frames
+    let frames = frames
         .into_iter()
         .map(|f| {
             let mut st = pipeline::new_stats(job, f);
-            pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut st).unwrap();
-            st
+            let img =
+                pipeline::render_frame(job, &scene, &resources, &mut state, f, &mut st).unwrap();
+            (img, st)
         })
         .collect();
-    (scene, resources, state, stats)
+    (scene, resources, state, frames)
 }
 
 /// Frame `frame` of `job` evaluated, and the photons its render traces.
@@ -456,10 +445,20 @@ fn kept_anchor_estimates_match_fresh_ones() {
     let (scene, resources, state, stats) = state_after(&job, 10..=last);
     let kept: u64 = stats[1..]
         .iter()
-        .map(|st| st.counts.anchors - st.counts.anchors_reestimated)
+        .map(|(_, st)| st.counts.anchors - st.counts.anchors_reestimated)
         .sum();
     assert!(kept > 1000, "{kept} estimates kept");
     let (_, pm) = frame_photons(&job, &scene, &resources, last);
+    assert_anchors_hold_fresh_estimates(&job, &state, &pm);
+}
+
+/// Every live anchor of `state` holds what a fresh estimate from `pm` at it gives (to
+/// RGBE's precision).
+fn assert_anchors_hold_fresh_estimates(
+    job: &anchorage::job::Job,
+    state: &FrameState,
+    pm: &anchorage::photon::PhotonMap,
+) {
     let params = job.method.params();
     let set = state.anchors.as_ref().unwrap();
     let k = params.anchors.anchor_k(params.k as usize);
@@ -475,6 +474,53 @@ fn kept_anchor_estimates_match_fresh_ones() {
         checked += 1;
     }
     assert!(checked > 1000);
+}
+
+/// Watch mode's relight re-estimates every anchor from the edited scene's photons, and each
+/// holds what a fresh estimate gives: after a material edit (the white walls' red halved;
+/// most photons moved, so each anchor searches unbounded at once) and after a light edit
+/// (the lamp doubled; every photon where it was, so each finds its k photons within its
+/// last reach). Measured: caught when the unbounded searches take half the photons, and
+/// when the searches within the reach do.
+#[test]
+fn a_relight_re_estimates_every_anchor_from_the_edited_scenes_photons() {
+    use anchorage::integrator::cached::Refresh;
+    let job = example("anchors", "");
+    let last = 13;
+    let (mut scene, resources, mut state, _) = state_after(&job, 10..=last);
+    let white = scene.materials.iter().position(|m| m.name == "white");
+    let lamp = scene
+        .materials
+        .iter()
+        .position(|m| m.emission.max_element() > 0.0);
+    let (white, lamp) = (white.unwrap(), lamp.unwrap());
+    for edit in ["material", "light"] {
+        let albedo = edit == "material";
+        if albedo {
+            std::sync::Arc::make_mut(&mut scene.materials)[white]
+                .base_color
+                .x *= 0.5;
+        } else {
+            std::sync::Arc::make_mut(&mut scene.materials)[lamp].emission *= 2.0;
+        }
+        let mut st = pipeline::new_stats(&job, last);
+        let refresh = Refresh {
+            relight_only: true,
+            albedo,
+        };
+        pipeline::render_frame_with(
+            &job, &scene, &resources, &mut state, last, &mut st, refresh, None,
+        )
+        .unwrap();
+        let c = &st.counts;
+        eprintln!(
+            "{edit}: {} of {} anchors re-estimated",
+            c.anchors_reestimated, c.anchors
+        );
+        assert_eq!(c.anchors_reestimated, c.anchors, "{edit}");
+        let (_, pm) = frame_photons(&job, &scene, &resources, last);
+        assert_anchors_hold_fresh_estimates(&job, &state, &pm);
+    }
 }
 
 /// The frame state is all a frame hands to the next: written out after frame 2 and read
