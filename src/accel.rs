@@ -372,16 +372,28 @@ impl Accel {
         best
     }
 
+    /// True if a dynamic prim (of `d`, this frame's dynamic geometry) meets
+    /// `origin + t·dir` for `t` in `(0, tmax)`; the static prims are not looked at.
+    pub fn occluded_dynamic(&self, d: &Geometry, origin: Vec3, dir: Vec3, tmax: f32) -> bool {
+        let dir = canonical(dir);
+        let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
+        self.meets_dynamic(d, ray, &ShearedRay::new(origin, dir))
+    }
+
+    fn meets_dynamic(&self, d: &Geometry, ray: Ray, sr: &ShearedRay) -> bool {
+        self.dynamic.as_ref().is_some_and(|bvh| {
+            !bvh.ray_traverse_miss(ray, |r, id| {
+                hit_distance(sr, d, bvh.primitive_indices[id] as usize, r.tmax)
+            })
+        })
+    }
+
     /// True if anything blocks `origin + t·dir` for `t` in `(0, tmax)` (shadow rays).
     pub fn occluded(&self, s: &Geometry, d: &Geometry, origin: Vec3, dir: Vec3, tmax: f32) -> bool {
         let dir = canonical(dir);
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
         let sr = ShearedRay::new(origin, dir);
-        if let Some(bvh) = &self.dynamic
-            && !bvh.ray_traverse_miss(ray, |r, id| {
-                hit_distance(&sr, d, bvh.primitive_indices[id] as usize, r.tmax)
-            })
-        {
+        if self.meets_dynamic(d, ray, &sr) {
             return true;
         }
         if let Some(bvh) = &self.statics.bvh

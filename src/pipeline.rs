@@ -174,6 +174,7 @@ pub fn render_frame_with(
                 c.anchors_created = a.anchors_created;
                 c.anchors_reestimated = a.anchors_reestimated;
                 c.rays_reshot = a.rays_reshot;
+                c.strata_flagged = a.strata_flagged;
                 stats.timings_s.visibility = a.visibility_s;
                 stats.anchor_reuse = Some(AnchorReuse {
                     one: a.reuse_histogram[0],

@@ -70,6 +70,12 @@ pub struct Counts {
     /// Final-gather rays traced this frame by records that existed before it (for
     /// `anchors`, the re-shot strata; for brute force, every stratum of every record).
     pub rays_reshot: u64,
+    /// `anchors`: strata the visibility test (paper §3.2) flagged as possibly seeing a
+    /// dynamic prim this frame. Of those, only the ones whose own ray meets a dynamic prim
+    /// before its static hit are re-shot; `rays_reshot` adds the strata whose ray met one
+    /// last frame.
+    #[serde(default)]
+    pub strata_flagged: u64,
     /// `anchors`: anchors whose irradiance was estimated again this frame.
     pub anchors_reestimated: u64,
     /// Live anchors, and anchors created this frame (`anchors`).

@@ -101,6 +101,26 @@ pub fn stratum_dir(ns: Vec3, id: u32, p: &CacheParams, s: u32) -> Vec3 {
     (t * (st * phi.cos()) + b * (st * phi.sin()) + ns * (1.0 - sin2).max(0.0).sqrt()).normalize()
 }
 
+/// Whether the ray of stratum `s` of the record at `sp` — the ray [`trace_stratum`]
+/// traces — meets a dynamic prim nearer than `tmax` (this frame's dynamic prims only; the
+/// alpha test applies as it does to every ray).
+pub fn stratum_meets_dynamic(
+    frame: &FrameScene,
+    sp: &SurfacePoint,
+    id: u32,
+    p: &CacheParams,
+    s: u32,
+    tmax: f32,
+) -> bool {
+    let dir = stratum_dir(sp.ns, id, p, s);
+    if dir.dot(sp.ng) <= 0.0 {
+        return false;
+    }
+    frame
+        .accel
+        .occluded_dynamic(&frame.dynamic_geometry, sp.spawn(), dir, tmax)
+}
+
 /// Traces stratum `s` of the record at `sp`.
 pub fn trace_stratum(
     frame: &FrameScene,

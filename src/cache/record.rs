@@ -75,6 +75,18 @@ impl Stratum {
     pub fn hit(&self) -> bool {
         half::f16::from_bits(self.0[2]).is_finite()
     }
+
+    /// A distance no nearer than the one the stratum's ray hit at (infinite on a miss, and
+    /// where the f16 saturated): the stored distance rounded to nearest is within 2⁻¹¹ of
+    /// it relatively, and within 2⁻²⁵·`scale` among the subnormals; the bound allows twice
+    /// both (`scale`: the record's footprint).
+    pub fn distance_bound(&self, scale: f32) -> f32 {
+        let d = half::f16::from_bits(self.0[2]);
+        if !d.is_finite() || d >= half::f16::MAX {
+            return f32::INFINITY;
+        }
+        d.to_f32() * scale * (1.0 + 2f32.powi(-10)) + 2f32.powi(-24) * scale
+    }
 }
 
 /// "No anchor" in a stratum's 30-bit link.

@@ -39,6 +39,10 @@ pub struct Score {
     pub photons_per_frame: f64,
     /// `anchors` after its first frame: median share of all strata re-traced, in %.
     pub reshot_pct: Option<f64>,
+    /// `anchors` after its first frame: median share of all strata the visibility test
+    /// flagged (§3.2), in %: the re-shot ones are those of them whose own ray meets a
+    /// dynamic prim, and those whose ray met one last frame.
+    pub flagged_pct: Option<f64>,
     /// `anchors` after its first frame: median visibility seconds per 10 000 records.
     pub visibility_s_per_10k_caches: Option<f64>,
 }
@@ -254,6 +258,10 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
             let strata = s.counts.caches as f64 * strata_per_record;
             100.0 * s.counts.rays_reshot as f64 / strata.max(1.0)
         }),
+        flagged_pct: steady(&|s| {
+            let strata = s.counts.caches as f64 * strata_per_record;
+            100.0 * s.counts.strata_flagged as f64 / strata.max(1.0)
+        }),
         visibility_s_per_10k_caches: steady(&|s| {
             s.timings_s.visibility / (s.counts.caches as f64).max(1.0) * 1e4
         }),
@@ -316,6 +324,7 @@ pub(super) fn sample(n: usize) -> Report {
                 caches_per_frame: 800.0,
                 photons_per_frame: 5e4,
                 reshot_pct: None,
+                flagged_pct: None,
                 visibility_s_per_10k_caches: None,
             }
         })

@@ -48,7 +48,7 @@ pub fn table(r: &Report) -> String {
     }
     s += "RMS*% and ind.err*%: the same errors less the reference's own noise (its per-pixel variance)\n";
     s += &format!(
-        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8}\n",
+        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8} {:>8}\n",
         rayon::current_num_threads(),
         "method/preset",
         "photons",
@@ -61,12 +61,13 @@ pub fn table(r: &Report) -> String {
         "total",
         "gather rays/s/core",
         "reshot%",
+        "flag%",
         "vis/10k"
     );
     for x in &r.results {
         let t = &x.table1_s;
         s += &format!(
-            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8}\n",
+            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8} {:>8}\n",
             x.label,
             t.photon_tracing,
             t.irradiance_estimation,
@@ -79,6 +80,7 @@ pub fn table(r: &Report) -> String {
             x.gather_rays_per_s_per_core
                 .map_or("n/a".into(), |v| format!("{:.2} M", v / 1e6)),
             x.reshot_pct.map_or("n/a".into(), |v| format!("{v:.2}")),
+            x.flagged_pct.map_or("n/a".into(), |v| format!("{v:.2}")),
             x.visibility_s_per_10k_caches
                 .map_or("n/a".into(), |v| format!("{v:.3}"))
         );
@@ -115,8 +117,8 @@ mod tests {
         assert_eq!(
             lines[7..9],
             [
-                "method/preset                             photons  irr.est   gather   interp   direct   visib.    other    total gather rays/s/core  reshot%  vis/10k",
-                "anchors/production photons=10000            0.010    0.020    0.100    0.010    0.020    0.000    0.040    0.200         2.00 M      n/a      n/a",
+                "method/preset                             photons  irr.est   gather   interp   direct   visib.    other    total gather rays/s/core  reshot%    flag%  vis/10k",
+                "anchors/production photons=10000            0.010    0.020    0.100    0.010    0.020    0.000    0.040    0.200         2.00 M      n/a      n/a      n/a",
             ]
         );
     }

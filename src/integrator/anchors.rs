@@ -46,6 +46,8 @@ pub struct AnchorStats {
     /// their estimate's reach changed).
     pub anchors_reestimated: u64,
     pub rays_reshot: u64,
+    /// Strata the visibility test flagged (§3.2), before their own rays were tested.
+    pub strata_flagged: u64,
     pub visibility_s: f64,
     /// Anchors by how many strata link them (the paper's Figure 8): 1, 2–10, 11–100,
     /// 101–1000, more.
@@ -194,6 +196,8 @@ pub fn update(
 
     let t = Instant::now();
     let flags = flag_strata(ctx.scene, cache, cp.strata, vis)?;
+    st.strata_flagged = flags.iter().map(|f| f.count() as u64).sum();
+    let todo = strata_to_reshoot(ctx.scene, cache, &flags, cp);
     st.visibility_s = t.elapsed().as_secs_f64();
 
     let importons = (ap.density == Density::Importance).then(|| {
@@ -215,8 +219,7 @@ pub fn update(
         importance: importons.as_ref(),
     };
 
-    st.rays_reshot =
-        reshoot_and_update(ctx, &att, set, cache, &flags, &changed, cp, false, timings);
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, todo, &changed, cp, false, timings);
 
     place_records(ctx, &att, set, cache, cp, samples, timings);
 
@@ -285,7 +288,8 @@ pub fn relight(
         .iter()
         .map(|r| StrataBits::new(r.strata.len()))
         .collect();
-    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, &none, &changed, cp, true, timings);
+    let todo = strata_to_reshoot(ctx.scene, cache, &none, cp);
+    st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, todo, &changed, cp, true, timings);
 
     let refs = anchor_references(set, cache);
     st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
@@ -439,27 +443,25 @@ fn flag_strata(
     vis.flag(&points, strata, &dynamic)
 }
 
-/// Re-traces the strata flagged now or whose ray hit a dynamic prim last frame (Pseudocode
-/// 2): per record, the strata re-traced and their hits.
-/// Re-traces the strata `flags` marks and those [`reshoot`] adds (with `stored`, those the
-/// cache kept the hits of are not traced), then updates the records from the new hits and
-/// the anchors `changed` marks ([`update_records`]); the timings of both, and the rays
-/// traced. The hits that met a dynamic prim are kept in the cache
-/// ([`IrradianceCache::dynamic_hits`]).
+/// Updates the records from this frame's re-shoot (Pseudocode 2): re-traces the strata
+/// `todo` lists per record ([`strata_to_reshoot`]; with `stored`, those the cache kept the
+/// hits of are read back instead), then updates the records from the new hits and the
+/// anchors `changed` marks ([`update_records`]); the timings of both, and the rays traced.
+/// The hits that met a dynamic prim are kept in the cache ([`IrradianceCache::dynamic_hits`]).
 #[allow(clippy::too_many_arguments)] // the frame, its anchors and cache, and what changed
 fn reshoot_and_update(
     ctx: &FrameContext,
     att: &Attacher,
     set: &mut AnchorSet,
     cache: &mut IrradianceCache,
-    flags: &[StrataBits],
+    todo: Vec<Vec<u32>>,
     changed: &[bool],
     cp: &CacheParams,
     stored: bool,
     timings: &mut GatherTimings,
 ) -> u64 {
     let t = Instant::now();
-    let (todo, hits, rays) = reshoot(ctx.scene, cache, flags, cp, stored);
+    let (hits, rays) = reshoot(ctx.scene, cache, &todo, cp, stored);
     timings.final_gathering += t.elapsed().as_secs_f64();
     timings.rays += rays;
     // The hits that met a dynamic prim, for a relight of this frame (placement adds those
@@ -475,28 +477,58 @@ fn reshoot_and_update(
     rays
 }
 
-fn reshoot(
+/// The strata of each record that this frame re-shoots (Pseudocode 2): those whose ray hit a
+/// dynamic prim last frame, and those that `flags` marks (§3.2: the stratum may see a
+/// dynamic prim) and whose own ray meets one nearer than its static hit. A record shoots
+/// the same ray in a stratum every frame ([`gather::stratum_dir`]), and static geometry does
+/// not change within a shot, so a flagged stratum whose ray meets no dynamic prim before
+/// the surface it hit would hit that surface again; tracing its ray against the few dynamic
+/// prims alone tells them apart. The flags' rule is conservative (a stratum's whole solid
+/// angle, occluders ignored): about half of the flagged strata are left out this way.
+fn strata_to_reshoot(
     frame: &FrameScene,
     cache: &IrradianceCache,
     flags: &[StrataBits],
     cp: &CacheParams,
-    stored: bool,
-) -> (Vec<Vec<u32>>, Vec<Vec<GatherHit>>, u64) {
-    let todo: Vec<Vec<u32>> = cache
+) -> Vec<Vec<u32>> {
+    cache
         .records
-        .iter()
+        .par_iter()
         .zip(flags)
         .map(|(r, f)| {
+            let sp = r.surface_point();
             (0..r.strata.len() as u32)
-                .filter(|&s| f.get(s as usize) || r.strata[s as usize].flags() & HIT_DYNAMIC != 0)
+                .filter(|&s| {
+                    let st = r.strata[s as usize];
+                    st.flags() & HIT_DYNAMIC != 0
+                        || f.get(s as usize)
+                            && gather::stratum_meets_dynamic(
+                                frame,
+                                &sp,
+                                r.id,
+                                cp,
+                                s,
+                                st.distance_bound(r.footprint),
+                            )
+                })
                 .collect()
         })
-        .collect();
+        .collect()
+}
+
+/// The hits of the strata `todo` lists, per record, and how many rays were traced for them.
+fn reshoot(
+    frame: &FrameScene,
+    cache: &IrradianceCache,
+    todo: &[Vec<u32>],
+    cp: &CacheParams,
+    stored: bool,
+) -> (Vec<Vec<GatherHit>>, u64) {
     let traced = std::sync::atomic::AtomicU64::new(0);
     let hits = cache
         .records
         .par_iter()
-        .zip(&todo)
+        .zip(todo)
         .map(|(r, list)| {
             let sp = r.surface_point();
             let kept = cache
@@ -515,7 +547,7 @@ fn reshoot(
                 .collect()
         })
         .collect();
-    (todo, hits, traced.into_inner())
+    (hits, traced.into_inner())
 }
 
 /// Re-makes every existing record from its strata: the re-shot ones resolved anew, the

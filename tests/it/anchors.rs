@@ -354,6 +354,60 @@ fn an_occluder_that_comes_and_goes() {
     }
 }
 
+/// A re-shoot re-traces only the flagged strata whose own ray meets the moving cube (§3.2's
+/// test flags a stratum's whole solid angle), and that loses no change: after frames of the
+/// example in which the cube slides, every stratum of every record holds what its ray hits
+/// in the last frame — the same kind of surface (static, dynamic, back face, nothing) at the
+/// same stored distance, and an anchor link exactly where it hits static geometry.
+#[test]
+fn every_stratum_holds_what_its_ray_hits_now() {
+    use anchorage::cache::{HIT_DYNAMIC, Stratum, gather};
+    let job = example("anchors", "");
+    let last = 14;
+    let (scene, resources, state, frames) = state_after(&job, 8..=last);
+    let (fs, _) = frame_photons(&job, &scene, &resources, last);
+    let cp = job.method.params().cache;
+    let (mut strata, mut stale, mut dynamic) = (0, 0, 0);
+    for r in &state.cache.records {
+        let sp = r.surface_point();
+        for (s, old) in r.strata.iter().enumerate() {
+            let g = gather::trace_stratum(&fs, &sp, r.id, &cp, s as u32);
+            let now = Stratum::new(None, g.flags(), g.distance, r.footprint);
+            let linked = old.link().is_some();
+            let static_hit = g.sp.is_some() && g.flags() & HIT_DYNAMIC == 0;
+            strata += 1;
+            dynamic += usize::from(g.flags() & HIT_DYNAMIC != 0);
+            if old.flags() != now.flags()
+                || old.distance(1.0).to_bits() != now.distance(1.0).to_bits()
+                || linked != static_hit
+            {
+                stale += 1;
+            }
+        }
+    }
+    let flagged: u64 = frames
+        .iter()
+        .skip(1)
+        .map(|(_, s)| s.counts.strata_flagged)
+        .sum();
+    let reshot: u64 = frames
+        .iter()
+        .skip(1)
+        .map(|(_, s)| s.counts.rays_reshot)
+        .sum();
+    eprintln!(
+        "{strata} strata, {dynamic} on the cube now, {stale} stale; frames {}-{last}: {flagged} \
+         flagged, {reshot} re-shot",
+        8 + 1
+    );
+    assert!(dynamic > 0, "the cube is in view of the records");
+    assert_eq!(stale, 0, "strata whose stored hit is not their ray's");
+    assert!(
+        reshot > 0 && reshot < flagged,
+        "{reshot} re-shot of {flagged} flagged"
+    );
+}
+
 #[test]
 fn anchors_give_the_same_bytes_with_one_and_two_threads() {
     let dir = tempdir();
