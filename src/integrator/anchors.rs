@@ -682,9 +682,11 @@ fn reuse_histogram(refs: &[u32]) -> [u64; 5] {
 fn dominant(strata: &[Stratum], rad: &[Vec3]) -> Option<AnchorId> {
     /// An empty slot (no anchor has this id: links are 30 bits).
     const EMPTY: u32 = u32::MAX;
+    /// (anchor id, summed luminance) per slot, and the slots in use.
+    type Table = (Vec<(u32, f32)>, Vec<u32>);
     thread_local! {
-        /// Each thread's table: (anchor id, summed luminance) per slot, and the slots used.
-        static TABLE: std::cell::RefCell<(Vec<(u32, f32)>, Vec<u32>)> =
+        /// Each thread's table.
+        static TABLE: std::cell::RefCell<Table> =
             const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
     }
     TABLE.with_borrow_mut(|(table, used)| {
