@@ -87,41 +87,91 @@ pub struct GatherTimings {
     pub rays: u64,
 }
 
-/// Direction of stratum `s` of a record with shading normal `ns` and id `id`: the jitter
-/// inside the stratum depends on the id only, so a record's rays are the same in every
-/// frame.
-pub fn stratum_dir(ns: Vec3, id: u32, p: &CacheParams, s: u32) -> Vec3 {
-    let [m, n] = p.strata;
-    let (t, b) = basis(ns);
-    let sampler = Sampler::strata(id);
-    let (j, k) = (s / n, s % n);
-    let [u, v] = sampler.get2(s, 0);
-    let (sin2, phi) = stratum_direction(m, n, j, k, u, v);
-    let st = sin2.sqrt();
-    (t * (st * phi.cos()) + b * (st * phi.sin()) + ns * (1.0 - sin2).max(0.0).sqrt()).normalize()
+/// A record's gather rays: where they leave from and the frame and jitter of their
+/// directions, made once for all of its strata. The jitter inside a stratum depends on the
+/// record's id only, so a record's rays are the same in every frame.
+pub struct StratumRays {
+    origin: Vec3,
+    t: Vec3,
+    b: Vec3,
+    ns: Vec3,
+    ng: Vec3,
+    sampler: Sampler,
+    strata: [u32; 2],
 }
 
-/// Whether the ray of stratum `s` of the record at `sp` — the ray [`trace_stratum`]
-/// traces — meets a dynamic prim nearer than `tmax` (this frame's dynamic prims only; the
-/// alpha test applies as it does to every ray).
-pub fn stratum_meets_dynamic(
-    frame: &FrameScene,
-    sp: &SurfacePoint,
-    id: u32,
-    p: &CacheParams,
-    s: u32,
-    tmax: f32,
-) -> bool {
-    let dir = stratum_dir(sp.ns, id, p, s);
-    if dir.dot(sp.ng) <= 0.0 {
-        return false;
+impl StratumRays {
+    /// The rays of the record with id `id` at `sp`.
+    pub fn new(sp: &SurfacePoint, id: u32, p: &CacheParams) -> Self {
+        let (t, b) = basis(sp.ns);
+        StratumRays {
+            origin: sp.spawn(),
+            t,
+            b,
+            ns: sp.ns,
+            ng: sp.ng,
+            sampler: Sampler::strata(id),
+            strata: p.strata,
+        }
     }
-    frame
-        .accel
-        .occluded_dynamic(&frame.dynamic_geometry, sp.spawn(), dir, tmax)
+
+    /// Direction of stratum `s`.
+    pub fn dir(&self, s: u32) -> Vec3 {
+        let [m, n] = self.strata;
+        let (j, k) = (s / n, s % n);
+        let [u, v] = self.sampler.get2(s, 0);
+        let (sin2, phi) = stratum_direction(m, n, j, k, u, v);
+        let st = sin2.sqrt();
+        (self.t * (st * phi.cos())
+            + self.b * (st * phi.sin())
+            + self.ns * (1.0 - sin2).max(0.0).sqrt())
+        .normalize()
+    }
+
+    /// Stratum `s`'s ray (origin, direction), or `None` where it leaves below the surface
+    /// (it is not traced: a miss).
+    fn ray(&self, s: u32) -> Option<(Vec3, Vec3)> {
+        let dir = self.dir(s);
+        (dir.dot(self.ng) > 0.0).then_some((self.origin, dir))
+    }
+
+    /// Traces stratum `s`.
+    pub fn trace(&self, frame: &FrameScene, s: u32) -> GatherHit {
+        let miss = GatherHit {
+            sp: None,
+            distance: f32::INFINITY,
+        };
+        let Some((o, dir)) = self.ray(s) else {
+            return miss;
+        };
+        match frame.accel.closest(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            o,
+            dir,
+            f32::INFINITY,
+        ) {
+            Some(h) => GatherHit {
+                sp: Some(SurfacePoint::new(frame, h, o, dir)),
+                distance: h.t,
+            },
+            None => miss,
+        }
+    }
+
+    /// Whether stratum `s`'s ray — the one [`StratumRays::trace`] traces — meets a dynamic
+    /// prim nearer than `tmax` (this frame's dynamic prims only; the alpha test applies as
+    /// it does to every ray).
+    pub fn meets_dynamic(&self, frame: &FrameScene, s: u32, tmax: f32) -> bool {
+        self.ray(s).is_some_and(|(o, dir)| {
+            frame
+                .accel
+                .occluded_dynamic(&frame.dynamic_geometry, o, dir, tmax)
+        })
+    }
 }
 
-/// Traces stratum `s` of the record at `sp`.
+/// Traces stratum `s` of the record with id `id` at `sp` ([`StratumRays`] for many).
 pub fn trace_stratum(
     frame: &FrameScene,
     sp: &SurfacePoint,
@@ -129,28 +179,7 @@ pub fn trace_stratum(
     p: &CacheParams,
     s: u32,
 ) -> GatherHit {
-    let dir = stratum_dir(sp.ns, id, p, s);
-    let miss = GatherHit {
-        sp: None,
-        distance: f32::INFINITY,
-    };
-    if dir.dot(sp.ng) <= 0.0 {
-        return miss;
-    }
-    let o = sp.spawn();
-    match frame.accel.closest(
-        &frame.static_geometry,
-        &frame.dynamic_geometry,
-        o,
-        dir,
-        f32::INFINITY,
-    ) {
-        Some(h) => GatherHit {
-            sp: Some(SurfacePoint::new(frame, h, o, dir)),
-            distance: h.t,
-        },
-        None => miss,
-    }
+    StratumRays::new(sp, id, p).trace(frame, s)
 }
 
 /// Traces every gather ray of a record at `sp`.
@@ -160,8 +189,9 @@ pub fn trace_strata(
     id: u32,
     p: &CacheParams,
 ) -> Vec<GatherHit> {
+    let rays = StratumRays::new(sp, id, p);
     (0..p.strata[0] * p.strata[1])
-        .map(|s| trace_stratum(frame, sp, id, p, s))
+        .map(|s| rays.trace(frame, s))
         .collect()
 }
 

@@ -480,7 +480,7 @@ fn reshoot_and_update(
 /// The strata of each record that this frame re-shoots (Pseudocode 2): those whose ray hit a
 /// dynamic prim last frame, and those that `flags` marks (§3.2: the stratum may see a
 /// dynamic prim) and whose own ray meets one nearer than its static hit. A record shoots
-/// the same ray in a stratum every frame ([`gather::stratum_dir`]), and static geometry does
+/// the same ray in a stratum every frame ([`gather::StratumRays`]), and static geometry does
 /// not change within a shot, so a flagged stratum whose ray meets no dynamic prim before
 /// the surface it hit would hit that surface again; tracing its ray against the few dynamic
 /// prims alone tells them apart. The flags' rule is conservative (a stratum's whole solid
@@ -496,20 +496,13 @@ fn strata_to_reshoot(
         .par_iter()
         .zip(flags)
         .map(|(r, f)| {
-            let sp = r.surface_point();
+            let rays = gather::StratumRays::new(&r.surface_point(), r.id, cp);
             (0..r.strata.len() as u32)
                 .filter(|&s| {
                     let st = r.strata[s as usize];
                     st.flags() & HIT_DYNAMIC != 0
                         || f.get(s as usize)
-                            && gather::stratum_meets_dynamic(
-                                frame,
-                                &sp,
-                                r.id,
-                                cp,
-                                s,
-                                st.distance_bound(r.footprint),
-                            )
+                            && rays.meets_dynamic(frame, s, st.distance_bound(r.footprint))
                 })
                 .collect()
         })
@@ -530,7 +523,7 @@ fn reshoot(
         .par_iter()
         .zip(todo)
         .map(|(r, list)| {
-            let sp = r.surface_point();
+            let rays = gather::StratumRays::new(&r.surface_point(), r.id, cp);
             let kept = cache
                 .dynamic_hits
                 .get(&r.id)
@@ -541,7 +534,7 @@ fn reshoot(
                     Ok(i) => kept[i].1,
                     Err(_) => {
                         traced.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        gather::trace_stratum(frame, &sp, r.id, cp, s)
+                        rays.trace(frame, s)
                     }
                 })
                 .collect()

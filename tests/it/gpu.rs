@@ -53,9 +53,9 @@ fn gpu_and_cpu_flag_the_same_strata_on_the_example() {
     assert!(ng * 100 <= nc * 101, "GPU {ng} vs CPU {nc}");
 }
 
-/// Frames rendered with `--visibility gpu` and `cpu` differ only in the `reshoot` AOV: an
-/// extra GPU stratum is re-traced, lands where it did before and keeps its anchor, so the
-/// light is the same to the bit.
+/// Frames rendered with `--visibility gpu` and `cpu` are the same, the `reshoot` AOV
+/// included: the GPU flags a superset of the CPU's strata, but a flagged stratum is re-shot
+/// only where its own ray meets a dynamic prim, and the CPU flags every such stratum.
 #[test]
 fn gpu_and_cpu_visibility_render_the_same_frames() {
     if adapter_for_tests().is_none() {
@@ -74,18 +74,8 @@ fn gpu_and_cpu_visibility_render_the_same_frames() {
         assert_eq!(ic.indirect, ig.indirect);
         assert_eq!(ic.anchor_id, ig.anchor_id);
         assert_eq!(sc.counts.anchors, sg.counts.anchors);
-        let (rc, rg) = (ic.reshoot.as_ref().unwrap(), ig.reshoot.as_ref().unwrap());
-        assert!(
-            rc.iter().zip(rg).all(|(c, g)| g >= c),
-            "GPU re-shoots a superset"
-        );
-        assert!(sg.counts.rays_reshot >= sc.counts.rays_reshot);
-        assert!(
-            sg.counts.rays_reshot as f64 <= sc.counts.rays_reshot as f64 * 1.01 + 10.0,
-            "frame {}: {} vs {} re-shot",
-            sc.frame,
-            sg.counts.rays_reshot,
-            sc.counts.rays_reshot
-        );
+        assert_eq!(ic.reshoot, ig.reshoot);
+        assert_eq!(sc.counts.rays_reshot, sg.counts.rays_reshot);
+        assert!(sg.counts.strata_flagged >= sc.counts.strata_flagged);
     }
 }
