@@ -171,17 +171,6 @@ impl StratumRays {
     }
 }
 
-/// Traces stratum `s` of the record with id `id` at `sp` ([`StratumRays`] for many).
-pub fn trace_stratum(
-    frame: &FrameScene,
-    sp: &SurfacePoint,
-    id: u32,
-    p: &CacheParams,
-    s: u32,
-) -> GatherHit {
-    StratumRays::new(sp, id, p).trace(frame, s)
-}
-
 /// Traces every gather ray of a record at `sp`.
 pub fn trace_strata(
     frame: &FrameScene,

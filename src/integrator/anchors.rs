@@ -484,7 +484,8 @@ fn reshoot_and_update(
 /// not change within a shot, so a flagged stratum whose ray meets no dynamic prim before
 /// the surface it hit would hit that surface again; tracing its ray against the few dynamic
 /// prims alone tells them apart. The flags' rule is conservative (a stratum's whole solid
-/// angle, occluders ignored): about half of the flagged strata are left out this way.
+/// angle, occluders ignored): on Sponza nine in ten flagged strata are left out this way, in
+/// the example room, whose cube fills much of many hemispheres, about half.
 fn strata_to_reshoot(
     frame: &FrameScene,
     cache: &IrradianceCache,
@@ -496,13 +497,17 @@ fn strata_to_reshoot(
         .par_iter()
         .zip(flags)
         .map(|(r, f)| {
-            let rays = gather::StratumRays::new(&r.surface_point(), r.id, cp);
+            // Set up only for a record with a flagged stratum (most have none).
+            let rays =
+                (f.count() > 0).then(|| gather::StratumRays::new(&r.surface_point(), r.id, cp));
             (0..r.strata.len() as u32)
                 .filter(|&s| {
                     let st = r.strata[s as usize];
                     st.flags() & HIT_DYNAMIC != 0
                         || f.get(s as usize)
-                            && rays.meets_dynamic(frame, s, st.distance_bound(r.footprint))
+                            && rays.as_ref().is_some_and(|rays| {
+                                rays.meets_dynamic(frame, s, st.distance_bound(r.footprint))
+                            })
                 })
                 .collect()
         })
@@ -523,6 +528,9 @@ fn reshoot(
         .par_iter()
         .zip(todo)
         .map(|(r, list)| {
+            if list.is_empty() {
+                return Vec::new();
+            }
             let rays = gather::StratumRays::new(&r.surface_point(), r.id, cp);
             let kept = cache
                 .dynamic_hits

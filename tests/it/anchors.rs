@@ -369,9 +369,9 @@ fn every_stratum_holds_what_its_ray_hits_now() {
     let cp = job.method.params().cache;
     let (mut strata, mut stale, mut dynamic) = (0, 0, 0);
     for r in &state.cache.records {
-        let sp = r.surface_point();
+        let rays = gather::StratumRays::new(&r.surface_point(), r.id, &cp);
         for (s, old) in r.strata.iter().enumerate() {
-            let g = gather::trace_stratum(&fs, &sp, r.id, &cp, s as u32);
+            let g = rays.trace(&fs, s as u32);
             let now = Stratum::new(None, g.flags(), g.distance, r.footprint);
             let linked = old.link().is_some();
             let static_hit = g.sp.is_some() && g.flags() & HIT_DYNAMIC == 0;
