@@ -164,6 +164,8 @@ pub fn render_frame_with(
             let c = &mut stats.counts;
             c.photons = gs.photons;
             c.caches = gs.caches;
+            c.caches_spot = gs.caches_spot;
+            c.caches_spot_made = gs.caches_spot_made;
             c.rays_shot = gs.rays_shot;
             c.uncached_samples = gs.uncached_samples;
             c.caches_retired = gs.caches_retired;

@@ -58,6 +58,13 @@ pub struct Counts {
     pub photons: u64,
     /// Irradiance cache records in use this frame.
     pub caches: u64,
+    /// `anchors`: spot records among `caches` — records made at camera samples that no
+    /// other record covers, read only by such samples — and those made this frame (the
+    /// others were made for earlier frames' samples and are read again).
+    #[serde(default)]
+    pub caches_spot: u64,
+    #[serde(default)]
+    pub caches_spot_made: u64,
     /// Records the Weber rule (paper §4.3; `method.weber_threshold`) removes after this
     /// frame: they had the least influence on pixels read from more than
     /// `method.weber_records` records.
@@ -65,7 +72,7 @@ pub struct Counts {
     pub caches_retired: u64,
     /// Final-gather rays traced this frame, those of `uncached_samples` included.
     pub rays_shot: u64,
-    /// Pixel samples no cache record covered, gathered on the spot.
+    /// Pixel samples no cache record (spot records included) covered, gathered on the spot.
     pub uncached_samples: u64,
     /// Final-gather rays traced this frame by records that existed before it (for
     /// `anchors`, the re-shot strata; for brute force, every stratum of every record).

@@ -15,7 +15,8 @@ pub(super) struct Placed {
     normal: Vec3,
     radius: f32,
     reach_radius: f32,
-    enclosed: bool,
+    /// Clamps its neighbours ([`Record::is_open`]).
+    open: bool,
 }
 
 impl Placed {
@@ -25,7 +26,7 @@ impl Placed {
             normal: r.normal,
             radius: r.radius,
             reach_radius: r.reach_radius,
-            enclosed: r.enclosed,
+            open: r.is_open(),
         }
     }
 }
@@ -99,7 +100,7 @@ impl IrradianceCache {
         }
     }
 
-    /// [`IrradianceCache::clamp_to_neighbours`] again after the Ward radii (or enclosed
+    /// [`IrradianceCache::clamp_to_neighbours`] again after the Ward radii (or enclosure
     /// flags) of the records `changed` (in index order) changed from `old`'s, positions and
     /// normals unchanged, with the same radii as a full pass: the changed records are
     /// clamped again from all their neighbours; a record a changed one may clamp takes its
@@ -138,7 +139,7 @@ impl IrradianceCache {
         let r = &self.records[i];
         let pi = (r.position, r.normal, r.radius);
         let cap = |j: &Placed| {
-            if j.enclosed {
+            if !j.open {
                 None
             } else {
                 clamp_cap(pi, (j.position, j.normal, j.radius), slope, a)
@@ -160,8 +161,8 @@ impl IrradianceCache {
         false
     }
 
-    /// Per slot, the lowest of `start` and the caps (`clamp_cap`) every record j that is
-    /// not enclosed puts on the records `grid(j)` finds at x_j and `slot` gives a slot
+    /// Per slot, the lowest of `start` and the caps (`clamp_cap`) every open record j
+    /// ([`Record::is_open`]) puts on the records `grid(j)` finds at x_j and `slot` gives a slot
     /// (`points`: each record's position, normal and Ward radius). The minimum does not
     /// depend on the order, so neither on the thread count.
     fn lowest_caps<'g>(
@@ -175,7 +176,7 @@ impl IrradianceCache {
         (0..points.len())
             .into_par_iter()
             .with_min_len(1024)
-            .filter(|&j| !self.records[j].enclosed)
+            .filter(|&j| self.records[j].is_open())
             .fold(
                 || start.clone(),
                 |mut reach, j| {
@@ -338,7 +339,7 @@ impl IrradianceCache {
         let changed: Vec<usize> = (0..old.len())
             .filter(|&i| {
                 let (a, b) = (&old[i], &self.records[i]);
-                a.radius.to_bits() != b.radius.to_bits() || a.enclosed != b.enclosed
+                a.radius.to_bits() != b.radius.to_bits() || a.open != b.is_open()
             })
             .collect();
         if changed.len() * 4 > old.len() {

@@ -131,6 +131,35 @@ pub struct IrradianceCache {
 /// Bytes of the grid entries of one record: up to eight cells hold its index.
 const CELL_ENTRIES: usize = 8 * 4;
 
+/// The points of `pending` (pixel index, surface point; in order) to gather in one round of
+/// [`IrradianceCache::place_at_samples`]: each with no point taken before it within
+/// `reach` pixels.
+fn spaced(
+    pending: &[&(u32, SurfacePoint)],
+    width: u32,
+    height: u32,
+    reach: i64,
+) -> Vec<(u32, SurfacePoint)> {
+    let mut taken = vec![false; (width as usize) * (height as usize)];
+    let mut chosen = Vec::new();
+    for &&(pixel, sp) in pending {
+        let (x, y) = ((pixel % width) as i64, (pixel / width) as i64);
+        let near = (-reach..=reach).any(|dy| {
+            (-reach..=reach).any(|dx| {
+                let (u, v) = (x + dx, y + dy);
+                (0..width as i64).contains(&u)
+                    && (0..height as i64).contains(&v)
+                    && taken[(v * width as i64 + u) as usize]
+            })
+        });
+        if !near {
+            taken[pixel as usize] = true;
+            chosen.push((pixel, sp));
+        }
+    }
+    chosen
+}
+
 /// [`IrradianceCache::dynamic_hits`]: per record id, (stratum, hit) pairs.
 pub type DynamicHits = rustc_hash::FxHashMap<u32, Vec<(u32, GatherHit)>>;
 
@@ -238,6 +267,11 @@ impl IrradianceCache {
         self.records.len()
     }
 
+    /// The id the next record made will have (ids only grow).
+    pub fn next_id(&self) -> u32 {
+        self.next_id
+    }
+
     pub fn is_empty(&self) -> bool {
         self.records.is_empty()
     }
@@ -329,16 +363,16 @@ impl IrradianceCache {
     }
 
     /// Ward's weight of record `r` at (x, n), or 0 where it must not be used: behind x,
-    /// facing away, or enclosed ([`Record::enclosed`]).
+    /// facing away, enclosed ([`Record::enclosed`]) or a spot record ([`Record::spot`]).
     /// w = 1 / (|x − x_i|/R_i + sqrt(1 − n·n_i)).
     fn weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
-        if r.enclosed {
+        if !r.is_open() {
             return 0.0;
         }
         Self::ward_weight(r, x, n)
     }
 
-    /// [`IrradianceCache::weight`] whether or not the record is enclosed.
+    /// [`IrradianceCache::weight`] whatever the record's kind.
     fn ward_weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
         let ndot = n.dot(r.normal);
         if ndot <= 0.0 {
@@ -394,6 +428,57 @@ impl IrradianceCache {
         self.blend(parts)
     }
 
+    /// [`IrradianceCache::interpolate`] among the spot records ([`Record::spot`]) alone:
+    /// what a camera sample that no other record covers reads. A spot record is made for
+    /// such a sample in the frame that first needs it ([`IrradianceCache::place`] with
+    /// `spot`), at the sample, and kept as any record is (its strata linked to anchors,
+    /// re-estimated and re-shot as theirs are, removed after `max_age` frames unused); later
+    /// frames' samples read it where its Ward radius, not widened to the minimum spacing,
+    /// makes it valid (the shading reads it to its relaxed threshold, as it reads the open
+    /// records), instead of gathering on the spot.
+    pub fn interpolate_spot(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        a: f32,
+        parts: &mut Vec<Contribution>,
+    ) -> Option<Interpolated> {
+        parts.clear();
+        if self.records.is_empty() {
+            return None;
+        }
+        self.grid.with_candidates(x, |idx| {
+            for &i in idx {
+                let r = &self.records[i as usize];
+                if !r.spot {
+                    continue;
+                }
+                let w = Self::ward_weight(r, x, n);
+                if w <= 1.0 / a {
+                    continue;
+                }
+                parts.push(Contribution {
+                    record: i,
+                    weight: w,
+                    value: r.extrapolate(x, n).max(Vec3::ZERO),
+                });
+            }
+        });
+        parts.sort_unstable_by_key(|c| c.record);
+        self.blend(parts)
+    }
+
+    /// True if a spot record is valid at (x, n) to a.
+    fn spot_covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
+        !self.records.is_empty()
+            && self.grid.with_candidates(x, |idx| {
+                idx.iter().any(|&i| {
+                    let r = &self.records[i as usize];
+                    r.spot && Self::ward_weight(r, x, n) > 1.0 / a
+                })
+            })
+    }
+
     /// What [`IrradianceCache::interpolate`] at (x, n) gives where its valid records and
     /// their weights are known (`weights`, in index order, as it found them): the records'
     /// values read again (a relight changes them, not where they are valid). `parts` is
@@ -415,7 +500,7 @@ impl IrradianceCache {
     }
 
     /// A key of everything that decides which records are valid where, and with what
-    /// weight: the records' positions, normals, reach radii and enclosure, and the error
+    /// weight: the records' positions, normals, reach radii and kinds, and the error
     /// thresholds `a`. Equal keys: [`IrradianceCache::interpolate`] finds the same records
     /// with the same weights at every point.
     pub fn interpolation_key(&self, a: &[f32]) -> u64 {
@@ -432,7 +517,7 @@ impl IrradianceCache {
                 }
             }
             h.write_u32(r.reach_radius.to_bits());
-            h.write_u8(u8::from(r.enclosed));
+            h.write_u8(u8::from(r.enclosed) | u8::from(r.spot) << 1);
         }
         h.finish()
     }
@@ -505,7 +590,7 @@ impl IrradianceCache {
         self.grid.with_candidates(x, |idx| {
             idx.iter().any(|&i| {
                 let r = &self.records[i as usize];
-                r.enclosed && Self::ward_weight(r, x, n) > 1.0 / a
+                r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
             })
         })
     }
@@ -544,7 +629,7 @@ impl IrradianceCache {
     /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
     /// grids from `coarsest` down to 1, then [`IrradianceCache::place_at_samples`] for
     /// `samples`, the points off the pixel centres where this frame's camera samples will
-    /// read the cache.
+    /// read the cache (with spot records for those no other record covers, with `spot`).
     #[allow(clippy::too_many_arguments)] // placement needs the view and the method
     pub fn place(
         &mut self,
@@ -554,6 +639,7 @@ impl IrradianceCache {
         p: &CacheParams,
         frame_number: i32,
         samples: &[(u32, SurfacePoint)],
+        spot: bool,
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
@@ -588,7 +674,7 @@ impl IrradianceCache {
                     (!covered).then_some((y * width + x, sp))
                 })
                 .collect();
-            self.add_records(frame, &needed, height, p, frame_number, resolve, timings);
+            self.add_records(frame, &needed, height, p, frame_number, false, resolve, timings);
             if spacing == 1 {
                 break;
             }
@@ -601,6 +687,7 @@ impl IrradianceCache {
             p,
             frame_number,
             samples,
+            spot,
             resolve,
             timings,
         );
@@ -612,12 +699,17 @@ impl IrradianceCache {
     /// own point, which the pixel-centre grids need not cover. In rounds: each takes, in
     /// order, the uncovered points with no point taken in the round within
     /// `min_spacing_px` pixels (a record is valid at least that far on its surface), gathers
-    /// them together, and leaves the rest to be checked again against the new records. A
-    /// point still uncovered after [`SAMPLE_ROUNDS`] rounds is gathered on the spot when
-    /// shaded, and so is one where an enclosed record ([`Record::enclosed`], of this frame or
-    /// an earlier one) would be valid: its own record would come out enclosed as well (a
-    /// contact, the inside of intersecting meshes), unused, and be placed again each round
-    /// and each frame (on Sponza, ~300 such records a frame, a fifth of its new records).
+    /// them together, and leaves the rest to be checked again against the new records.
+    ///
+    /// No record is placed for a point still uncovered after [`SAMPLE_ROUNDS`] rounds, nor
+    /// for one where an enclosed record ([`Record::enclosed`], of this frame or an earlier
+    /// one) would be valid: its own record would come out enclosed as well (a contact, the
+    /// inside of intersecting meshes), unused, and be placed again each round and each
+    /// frame (on Sponza, ~300 such records a frame, a fifth of its new records). With
+    /// `spot` (the anchor method), each such point that no spot record covers to the relaxed
+    /// threshold gets one ([`IrradianceCache::interpolate_spot`]), in rounds the same way,
+    /// the last round taking every point left; without, such points gather on the spot
+    /// when shaded.
     #[allow(clippy::too_many_arguments)] // `place`'s
     fn place_at_samples(
         &mut self,
@@ -627,44 +719,53 @@ impl IrradianceCache {
         p: &CacheParams,
         frame_number: i32,
         samples: &[(u32, SurfacePoint)],
+        spot: bool,
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
         let reach = p.min_spacing_px.max(1.0) as i64;
+        let relaxed = RELAXED * p.error;
         let mut pending: Vec<&(u32, SurfacePoint)> = samples.iter().collect();
         for _ in 0..SAMPLE_ROUNDS {
             pending = pending
                 .into_par_iter()
                 .filter(|(_, sp)| {
-                    let (x, n, a) = (sp.position, sp.ns, RELAXED * p.error);
-                    !self.covers(x, n, a) && !self.within_enclosed(x, n, a)
+                    let (x, n) = (sp.position, sp.ns);
+                    !self.covers(x, n, relaxed) && !self.within_enclosed(x, n, relaxed)
                 })
                 .collect();
             if pending.is_empty() {
-                return;
+                break;
             }
-            let mut taken = vec![false; (width as usize) * (height as usize)];
-            let mut chosen = Vec::new();
-            for &&(pixel, sp) in &pending {
-                let (x, y) = ((pixel % width) as i64, (pixel / width) as i64);
-                let near = (-reach..=reach).any(|dy| {
-                    (-reach..=reach).any(|dx| {
-                        let (u, v) = (x + dx, y + dy);
-                        (0..width as i64).contains(&u)
-                            && (0..height as i64).contains(&v)
-                            && taken[(v * width as i64 + u) as usize]
-                    })
-                });
-                if !near {
-                    taken[pixel as usize] = true;
-                    chosen.push((pixel, sp));
-                }
+            let chosen = spaced(&pending, width, height, reach);
+            self.add_records(frame, &chosen, height, p, frame_number, false, resolve, timings);
+        }
+        if !spot {
+            return;
+        }
+        let mut pending: Vec<&(u32, SurfacePoint)> = samples
+            .par_iter()
+            .filter(|(_, sp)| !self.covers(sp.position, sp.ns, relaxed))
+            .collect();
+        for round in 1..=SAMPLE_ROUNDS {
+            pending = pending
+                .into_par_iter()
+                .filter(|(_, sp)| !self.spot_covers(sp.position, sp.ns, relaxed))
+                .collect();
+            if pending.is_empty() {
+                break;
             }
-            self.add_records(frame, &chosen, height, p, frame_number, resolve, timings);
+            let chosen = if round < SAMPLE_ROUNDS {
+                spaced(&pending, width, height, reach)
+            } else {
+                pending.iter().map(|&&c| c).collect()
+            };
+            self.add_records(frame, &chosen, height, p, frame_number, true, resolve, timings);
         }
     }
 
-    /// Gathers and inserts records at the given surface points (in order).
+    /// Gathers and inserts records at the given surface points (in order): spot records
+    /// ([`Record::spot`]) with `spot`.
     #[allow(clippy::too_many_arguments)]
     pub fn add_records(
         &mut self,
@@ -673,6 +774,7 @@ impl IrradianceCache {
         height: u32,
         p: &CacheParams,
         frame_number: i32,
+        spot: bool,
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
@@ -715,6 +817,7 @@ impl IrradianceCache {
                     &rad,
                     p,
                     frame_number,
+                    spot,
                 )
             })
             .collect();
@@ -889,7 +992,7 @@ mod tests {
         // No photon reaches the inside of the box; the outside of everything is lit.
         let lit = |sp: &SurfacePoint| if sp.front { Vec3::ONE } else { Vec3::ZERO };
         let (strata, rad) = estimate_all(&[0.1], vec![hits.clone()], &lit).remove(0);
-        let r = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0);
+        let r = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0, false);
         assert!(
             r.enclosed,
             "every ray of a gather inside the box hits an unlit back face"
@@ -898,7 +1001,7 @@ mod tests {
         // from its neighbours, as Sponza's LOD is): nothing is enclosed there.
         let everywhere = |_: &SurfacePoint| Vec3::ONE;
         let (strata, rad) = estimate_all(&[0.1], vec![hits], &everywhere).remove(0);
-        let lit_back = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0);
+        let lit_back = finish_record(&sp, Motion::Static, 7, 0.1, strata, &rad, &p, 0, false);
         assert!(!lit_back.enclosed, "lit back faces are no inside");
         let mut cache = IrradianceCache::default();
         cache.set_params(&p);
@@ -924,8 +1027,56 @@ mod tests {
         let sp = crate::interaction::trace(&frame, o, -Vec3::Y).unwrap();
         let hits = gather::trace_strata(&frame, &sp, 8, &p);
         let (strata, rad) = estimate_all(&[0.05], vec![hits], &lit).remove(0);
-        let open = finish_record(&sp, Motion::Static, 8, 0.05, strata, &rad, &p, 0);
+        let open = finish_record(&sp, Motion::Static, 8, 0.05, strata, &rad, &p, 0, false);
         assert!(!open.enclosed && open.irradiance.x > 0.0);
+    }
+
+    /// A spot record keeps its own Ward radius (not widened to the minimum spacing), serves
+    /// [`IrradianceCache::interpolate_spot`] alone and only within that radius, and neither
+    /// covers a point for placement nor clamps an open record's radius.
+    #[test]
+    fn a_spot_record_serves_only_uncovered_samples_within_its_own_radius() {
+        let frame = box_on_floor();
+        let p = CacheParams::default();
+        // On the floor a hair outside the box's +x face: half the hemisphere is the box.
+        let sp = crate::interaction::trace(&frame, Vec3::new(0.51, 0.5, 0.1), -Vec3::Y).unwrap();
+        let hits = gather::trace_strata(&frame, &sp, 9, &p);
+        let lit = |sp: &SurfacePoint| if sp.front { Vec3::ONE } else { Vec3::ZERO };
+        let (strata, rad) = estimate_all(&[0.1], vec![hits], &lit).remove(0);
+        let widened = finish_record(&sp, Motion::Static, 9, 0.1, strata.clone(), &rad, &p, 0, false);
+        let spot = finish_record(&sp, Motion::Static, 9, 0.1, strata, &rad, &p, 0, true);
+        let r_min = p.min_spacing_px * 0.1 / p.error;
+        assert_eq!(widened.radius, r_min, "the box makes Ward's radius small");
+        assert!(spot.spot && spot.radius < 0.5 * r_min, "{} against {r_min}", spot.radius);
+        assert_eq!(spot.irradiance, widened.irradiance);
+        // An open record 0.3 away on the floor, whose radius a neighbour at the spot
+        // record's place with its radius would clamp (to 2 · 0.3 + R_spot).
+        let mut open = Record::bare(sp.position + Vec3::new(0.3, 0.0, 0.0), Vec3::Y, 2.0);
+        open.id = 1;
+        let mut cache = IrradianceCache::default();
+        cache.set_params(&p);
+        cache.replace_records(vec![open.clone(), spot.clone()]);
+        assert_eq!(cache.records[0].reach_radius, 2.0, "a spot record clamps no one");
+        let (x, n, a) = (spot.position, Vec3::Y, RELAXED * p.error);
+        let mut parts = Vec::new();
+        // Open lookups read the open record only, even at the spot record's own place.
+        assert!(cache.interpolate(x, n, a, &mut parts).is_some());
+        assert!(parts.iter().all(|c| c.record == 0));
+        assert!(cache.valid_records(x, n, a).iter().all(|&i| i == 0));
+        // Only spot lookups read it: at its place, not a·R_spot beyond it (where its radius
+        // widened to the minimum spacing would still be valid).
+        let found = cache.interpolate_spot(x, n, a, &mut parts).unwrap();
+        assert_eq!(parts.iter().map(|c| c.record).collect::<Vec<_>>(), vec![1]);
+        assert_eq!(found.irradiance, spot.irradiance);
+        assert!(cache.spot_covers(x, n, a));
+        let beyond = x + Vec3::new(0.0, 0.0, 1.25 * a * spot.radius);
+        assert!(1.25 * a * spot.radius < a * r_min);
+        assert!(cache.interpolate_spot(beyond, n, a, &mut parts).is_none());
+        assert!(!cache.spot_covers(beyond, n, a));
+        // A cache of the spot record alone covers nothing for placement.
+        cache.replace_records(vec![spot]);
+        assert!(!cache.covers(x, n, a));
+        assert!(cache.interpolate(x, n, a, &mut parts).is_none());
     }
 
     fn wall_radiance(sp: &SurfacePoint) -> Vec3 {
@@ -947,7 +1098,7 @@ mod tests {
         let sp = SurfacePoint::new(frame, hit, o, -Vec3::Y);
         let hits = gather::trace_strata(frame, &sp, 3, p);
         let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
-        finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, p, 0)
+        finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, p, 0, false)
     }
 
     #[test]
@@ -1006,7 +1157,7 @@ mod tests {
         sp.ns = n2;
         let hits = gather::trace_strata(&frame, &sp, 3, &p);
         let (strata, rad) = estimate_all(&[1e-3], vec![hits], &wall_radiance).remove(0);
-        let tilted = finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, &p, 0);
+        let tilted = finish_record(&sp, Motion::Static, 3, 1e-3, strata, &rad, &p, 0, false);
         let predicted = r.extrapolate(r.position, n2).x;
         let actual = tilted.irradiance.x;
         let change = actual - r.irradiance.x;

@@ -139,6 +139,11 @@ pub struct Record {
     /// wound the other way from their neighbours (decimated or mirrored exports, Sponza's
     /// LOD among them) show them to the room, and photons land on them from that side.
     pub enclosed: bool,
+    /// A spot record ([`IrradianceCache::interpolate_spot`]): made for a camera sample that
+    /// no other record covers, valid out to its own Ward radius (not widened to the minimum
+    /// spacing), and read only by such samples. Interpolation, placement, neighbour
+    /// clamping and the Weber rule ignore it, as they ignore enclosed records.
+    pub spot: bool,
 }
 
 #[cfg(test)]
@@ -164,11 +169,18 @@ impl Record {
             reshot: 0.0,
             dominant_anchor: None,
             enclosed: false,
+            spot: false,
         }
     }
 }
 
 impl Record {
+    /// True for a record that lookups, placement and neighbour clamping use: neither
+    /// enclosed nor a spot record.
+    pub fn is_open(&self) -> bool {
+        !self.enclosed && !self.spot
+    }
+
     /// First-order irradiance at (x, n) from the record's gradients (Ward & Heckbert 1992):
     /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as [`gradients`] computes it.
     pub fn extrapolate(&self, x: Vec3, n: Vec3) -> Vec3 {
@@ -182,7 +194,7 @@ impl Record {
 }
 
 /// Completes a record from its strata: irradiance E = π/(MN) Σ L, harmonic-mean radius
-/// clamped to [min, max] footprints, and gradients.
+/// clamped to [min, max] footprints (a spot record's, to the max only), and gradients.
 #[allow(clippy::too_many_arguments)] // a record's every part
 pub fn finish_record(
     sp: &SurfacePoint,
@@ -193,6 +205,7 @@ pub fn finish_record(
     radiance: &[Vec3],
     p: &CacheParams,
     frame: i32,
+    spot: bool,
 ) -> Record {
     let [m, n] = p.strata;
     let scale = PI / (m * n) as f32;
@@ -214,11 +227,14 @@ pub fn finish_record(
         f32::INFINITY
     };
     // Clamp so that the region where the record is valid (distance < a·R) spans between
-    // min and max pixel footprints (Tabellion & Lamorlette 2004).
-    let radius = harmonic.clamp(
-        p.min_spacing_px * footprint / p.error,
-        p.max_spacing_px * footprint / p.error,
-    );
+    // min and max pixel footprints (Tabellion & Lamorlette 2004). A spot record serves
+    // only the samples its own Ward radius covers: not widened to the minimum.
+    let r_max = p.max_spacing_px * footprint / p.error;
+    let radius = if spot {
+        harmonic.min(r_max)
+    } else {
+        harmonic.clamp(p.min_spacing_px * footprint / p.error, r_max)
+    };
     let r_min = p.min_spacing_px * footprint / p.error;
     let (grad_r, mut grad_t) = gradients(&strata, radiance, footprint, sp.ns, m, n, r_min);
     // Gradient limiting (Křivánek et al. 2006): extrapolation across the region where the
@@ -250,6 +266,7 @@ pub fn finish_record(
         reshot: 1.0,
         dominant_anchor: None,
         enclosed,
+        spot,
     }
 }
 
@@ -272,6 +289,7 @@ impl Record {
             radiance,
             p,
             frame,
+            self.spot,
         );
         new.last_used = self.last_used;
         new

@@ -623,6 +623,7 @@ fn place_records(
             cp,
             ctx.frame,
             samples,
+            true,
             &mut resolver,
             timings,
         );

@@ -101,6 +101,10 @@ pub struct CachedStats {
     pub direct_lighting: f64,
     pub photons: u64,
     pub caches: u64,
+    /// Spot records ([`crate::cache::Record::spot`]) among `caches`, and those made this
+    /// frame.
+    pub caches_spot: u64,
+    pub caches_spot_made: u64,
     /// Records the Weber rule (§4.3) removes after this frame.
     pub caches_retired: u64,
     /// Final-gather rays: the prepare phase's and the uncached fallback's.
@@ -208,6 +212,7 @@ pub fn render_in_bands(
     let mut gt = GatherTimings::default();
     let cache = state.cache;
     cache.set_params(&params.cache);
+    let first_id = cache.next_id();
     if method == CachedMethod::Anchors && refresh.relight_only {
         st.anchors = Some(super::anchors::relight(
             ctx,
@@ -239,6 +244,12 @@ pub fn render_in_bands(
     st.irradiance_estimation += gt.irradiance_estimation;
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
+    st.caches_spot = cache.records.iter().filter(|r| r.spot).count() as u64;
+    st.caches_spot_made = cache
+        .records
+        .iter()
+        .filter(|r| r.spot && r.id >= first_id)
+        .count() as u64;
 
     // Only the anchor method's state survives a light or material edit to be relit. The
     // keys are those of the cache as it is shaded, after this frame's update.
@@ -412,8 +423,10 @@ fn prepare_brute_force(
     cache.dynamic_hits.clear();
     cache.expire(ctx.frame, cp.max_age);
     cache.regather(ctx.scene, cp, ctx.frame, &mut brute, gt);
+    // Samples no record covers gather on the spot in every frame, as brute force does
+    // everywhere: no spot records.
     cache.place(
-        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, samples, &mut brute, gt,
+        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, samples, false, &mut brute, gt,
     );
 }
 
@@ -828,7 +841,8 @@ impl CachedShading<'_> {
     }
 
     /// Interpolates the cache at `at`. A sample off the placement grid may fall just outside
-    /// every record: the threshold is relaxed twice before gathering on the spot.
+    /// every record: the threshold is relaxed, then the spot records are read
+    /// ([`IrradianceCache::interpolate_spot`]), before gathering on the spot.
     fn lookup(
         &self,
         ctx: &FrameContext,
@@ -852,13 +866,18 @@ impl CachedShading<'_> {
                 .or_else(|| {
                     self.cache
                         .interpolate(at.position, at.ns, RELAXED * a, parts)
-                }),
+                })
+                .or_else(|| self.cache.interpolate_spot(at.position, at.ns, RELAXED * a, parts)),
         };
         if self.replay.log {
             row.log.interpolation(parts);
         }
         row.used.extend(parts.iter().map(|c| c.record));
-        if found.is_some() && self.params.weber_threshold > 0.0 {
+        // The Weber rule (§4.3) weighs the open records a pixel reads, not spot records.
+        let open = parts
+            .first()
+            .is_some_and(|c| !self.cache.records[c.record as usize].spot);
+        if found.is_some() && open && self.params.weber_threshold > 0.0 {
             row.weber.read(parts);
         }
         match found {

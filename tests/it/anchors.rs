@@ -106,7 +106,11 @@ fn anchors_agree_with_brute_force_frame_by_frame() {
             sa.counts.rays_reshot,
             sb.counts.rays_shot
         );
-        assert_eq!(sa.counts.caches, sb.counts.caches, "same cache placement");
+        assert_eq!(
+            sa.counts.caches - sa.counts.caches_spot,
+            sb.counts.caches,
+            "same cache placement (the anchors' spot records aside)"
+        );
         assert!(sa.counts.anchors > 0);
         assert!(ia.anchor_id.as_ref().unwrap().iter().any(|&id| id > 0));
     }
