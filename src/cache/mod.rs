@@ -407,13 +407,26 @@ impl IrradianceCache {
             a <= REACH * self.grid.error * 1.0001,
             "lookup beyond the grid's reach"
         );
+        self.interpolate_by(x, n, a, parts, Self::weight)
+    }
+
+    /// The blend of the records whose `weight` at (x, n) exceeds 1/a, found through the
+    /// lookup grid.
+    fn interpolate_by(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        a: f32,
+        parts: &mut Vec<Contribution>,
+        weight: impl Fn(&Record, Vec3, Vec3) -> f32,
+    ) -> Option<Interpolated> {
         // The valid records' weights and values, summed in index order (whatever order the
         // grid's cells hand them out in): sorting the few valid ones is cheaper than sorting
         // every candidate.
         self.grid.with_candidates(x, |idx| {
             for &i in idx {
                 let r = &self.records[i as usize];
-                let w = Self::weight(r, x, n);
+                let w = weight(r, x, n);
                 if w <= 1.0 / a {
                     continue;
                 }
@@ -447,25 +460,13 @@ impl IrradianceCache {
         if self.records.is_empty() {
             return None;
         }
-        self.grid.with_candidates(x, |idx| {
-            for &i in idx {
-                let r = &self.records[i as usize];
-                if !r.spot {
-                    continue;
-                }
-                let w = Self::ward_weight(r, x, n);
-                if w <= 1.0 / a {
-                    continue;
-                }
-                parts.push(Contribution {
-                    record: i,
-                    weight: w,
-                    value: r.extrapolate(x, n).max(Vec3::ZERO),
-                });
+        self.interpolate_by(x, n, a, parts, |r, x, n| {
+            if r.spot {
+                Self::ward_weight(r, x, n)
+            } else {
+                0.0
             }
-        });
-        parts.sort_unstable_by_key(|c| c.record);
-        self.blend(parts)
+        })
     }
 
     /// True if a spot record is valid at (x, n) to a.
