@@ -399,19 +399,11 @@ impl IrradianceCache {
         a: f32,
         parts: &mut Vec<Contribution>,
     ) -> Option<Interpolated> {
-        parts.clear();
-        if self.records.is_empty() {
-            return None;
-        }
-        debug_assert!(
-            a <= REACH * self.grid.error * 1.0001,
-            "lookup beyond the grid's reach"
-        );
         self.interpolate_by(x, n, a, parts, Self::weight)
     }
 
     /// The blend of the records whose `weight` at (x, n) exceeds 1/a, found through the
-    /// lookup grid.
+    /// lookup grid (`parts` cleared first).
     fn interpolate_by(
         &self,
         x: Vec3,
@@ -420,6 +412,14 @@ impl IrradianceCache {
         parts: &mut Vec<Contribution>,
         weight: impl Fn(&Record, Vec3, Vec3) -> f32,
     ) -> Option<Interpolated> {
+        parts.clear();
+        if self.records.is_empty() {
+            return None;
+        }
+        debug_assert!(
+            a <= REACH * self.grid.error * 1.0001,
+            "lookup beyond the grid's reach"
+        );
         // The valid records' weights and values, summed in index order (whatever order the
         // grid's cells hand them out in): sorting the few valid ones is cheaper than sorting
         // every candidate.
@@ -456,10 +456,6 @@ impl IrradianceCache {
         a: f32,
         parts: &mut Vec<Contribution>,
     ) -> Option<Interpolated> {
-        parts.clear();
-        if self.records.is_empty() {
-            return None;
-        }
         self.interpolate_by(x, n, a, parts, |r, x, n| {
             if r.spot {
                 Self::ward_weight(r, x, n)

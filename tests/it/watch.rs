@@ -670,6 +670,75 @@ fn image_text(img: &anchorage::integrator::FrameImage) -> String {
     format!("{img:?}")
 }
 
+/// `g` (the room's glTF) with the material "white" recoloured.
+fn with_white_recoloured(g: &Value) -> Value {
+    let mut g = g.clone();
+    let white = g["materials"]
+        .as_array_mut()
+        .unwrap()
+        .iter_mut()
+        .find(|m| m["name"] == "white")
+        .expect("the room has a white material");
+    white["pbrMetallicRoughness"]["baseColorFactor"] = serde_json::json!([0.4, 0.8, 0.8, 1.0]);
+    g
+}
+
+/// Frame 0 of `loaded`'s scene (with `job`'s settings) rendered afresh with its shading
+/// logged, as watch mode renders: the state it leaves and the log.
+fn logged_render(
+    job: &anchorage::job::Job,
+    loaded: &anchorage::watch::Loaded,
+    resources: &anchorage::session::Resources,
+) -> (anchorage::session::FrameState, anchorage::integrator::replay::ShadingLog) {
+    use anchorage::integrator::cached::Refresh;
+    let mut state = anchorage::session::FrameState::default();
+    let mut log = anchorage::integrator::replay::ShadingLog::default();
+    anchorage::pipeline::render_frame_with(
+        job,
+        &loaded.scene,
+        resources,
+        &mut state,
+        0,
+        &mut anchorage::pipeline::new_stats(job, 0),
+        Refresh::default(),
+        Some((&mut log, &anchorage::watch::direct_keys(loaded, 0))),
+    )
+    .unwrap();
+    (state, log)
+}
+
+/// Frame 0 relit from `state` after an edit (`edited`, the scene as it is now), replaying
+/// `log` where one is given: every AOV of the image as text, and the pixel samples gathered
+/// on the spot.
+fn relit_frame(
+    job: &anchorage::job::Job,
+    edited: &anchorage::watch::Loaded,
+    resources: &anchorage::session::Resources,
+    state: &anchorage::session::FrameState,
+    log: Option<&mut anchorage::integrator::replay::ShadingLog>,
+) -> (String, u64) {
+    use anchorage::integrator::cached::Refresh;
+    let mut s = state.clone();
+    let mut stats = anchorage::pipeline::new_stats(job, 0);
+    let refresh = Refresh {
+        relight_only: true,
+        albedo: true,
+    };
+    let keys = anchorage::watch::direct_keys(edited, 0);
+    let img = anchorage::pipeline::render_frame_with(
+        job,
+        &edited.scene,
+        resources,
+        &mut s,
+        0,
+        &mut stats,
+        refresh,
+        log.map(|l| (l, &keys)),
+    )
+    .unwrap();
+    (image_text(&img), stats.counts.uncached_samples)
+}
+
 /// A relight reads the spot records (`Record::spot`: made where no other record covers a
 /// camera sample; records valid out to a hundredth of a pixel make them common here) through
 /// the log as it reads the other records: after a material edit, the replayed relight is
@@ -677,12 +746,8 @@ fn image_text(img: &anchorage::integrator::FrameImage) -> String {
 /// samples then gather on the spot).
 #[test]
 fn a_relight_reads_spot_records_through_the_log_as_tracing_does() {
-    use anchorage::integrator::cached::Refresh;
-    use anchorage::integrator::replay::ShadingLog;
     use anchorage::job::Overrides;
-    use anchorage::pipeline;
-    use anchorage::session::FrameState;
-    use anchorage::watch::{Loaded, direct_keys};
+    use anchorage::watch::Loaded;
 
     let (_dir, gltf, job_path) = room_copy([64, 48], 0);
     let mut j: Value = serde_json::from_slice(&std::fs::read(&job_path).unwrap()).unwrap();
@@ -693,58 +758,18 @@ fn a_relight_reads_spot_records_through_the_log_as_tracing_does() {
     let load = || Loaded::load(&job_path, &Overrides::default()).unwrap();
     let first = load();
     let job = &first.job;
-    let resources = pipeline::new_resources(job, &first.scene).unwrap();
-    let mut state = FrameState::default();
-    let mut log = ShadingLog::default();
-    let mut stats = pipeline::new_stats(job, 0);
-    pipeline::render_frame_with(
-        job,
-        &first.scene,
-        &resources,
-        &mut state,
-        0,
-        &mut stats,
-        Refresh::default(),
-        Some((&mut log, &direct_keys(&first, 0))),
-    )
-    .unwrap();
+    let resources = anchorage::pipeline::new_resources(job, &first.scene).unwrap();
+    let (state, log) = logged_render(job, &first, &resources);
     let spots = state.cache.records.iter().filter(|r| r.spot).count();
     eprintln!("{spots} spot records");
     assert!(spots > 0, "the test needs spot records");
 
-    let mut g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
-    let white = g["materials"]
-        .as_array_mut()
-        .unwrap()
-        .iter_mut()
-        .find(|m| m["name"] == "white")
-        .expect("the room has a white material");
-    white["pbrMetallicRoughness"]["baseColorFactor"] = serde_json::json!([0.4, 0.8, 0.8, 1.0]);
-    save_atomic(&gltf, &g);
+    let g: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    save_atomic(&gltf, &with_white_recoloured(&g));
     let edited = load();
-    let relit = |log: Option<&mut ShadingLog>| {
-        let mut s = state.clone();
-        let mut stats = pipeline::new_stats(job, 0);
-        let refresh = Refresh {
-            relight_only: true,
-            albedo: true,
-        };
-        let keys = direct_keys(&edited, 0);
-        let img = pipeline::render_frame_with(
-            job,
-            &edited.scene,
-            &resources,
-            &mut s,
-            0,
-            &mut stats,
-            refresh,
-            log.map(|l| (l, &keys)),
-        )
-        .unwrap();
-        (image_text(&img), stats.counts.uncached_samples)
-    };
-    let (traced, on_the_spot) = relit(None);
-    let (replayed, replayed_on_the_spot) = relit(Some(&mut log.clone()));
+    let (traced, on_the_spot) = relit_frame(job, &edited, &resources, &state, None);
+    let (replayed, replayed_on_the_spot) =
+        relit_frame(job, &edited, &resources, &state, Some(&mut log.clone()));
     assert_eq!(on_the_spot, replayed_on_the_spot);
     assert!(
         replayed == traced,
@@ -754,32 +779,17 @@ fn a_relight_reads_spot_records_through_the_log_as_tracing_does() {
 
 #[test]
 fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_gives() {
-    use anchorage::integrator::cached::Refresh;
     use anchorage::integrator::replay::ShadingLog;
     use anchorage::job::Overrides;
     use anchorage::pipeline;
-    use anchorage::session::FrameState;
-    use anchorage::watch::{Loaded, direct_keys};
+    use anchorage::watch::Loaded;
 
     let (_dir, gltf, job_path) = room_copy([48, 36], 0);
     let load = || Loaded::load(&job_path, &Overrides::default()).unwrap();
     let first = load();
     let job = &first.job;
     let resources = pipeline::new_resources(job, &first.scene).unwrap();
-    let mut state = FrameState::default();
-    let mut log = ShadingLog::default();
-    let mut stats = pipeline::new_stats(job, 0);
-    pipeline::render_frame_with(
-        job,
-        &first.scene,
-        &resources,
-        &mut state,
-        0,
-        &mut stats,
-        Refresh::default(),
-        Some((&mut log, &direct_keys(&first, 0))),
-    )
-    .unwrap();
+    let (state, log) = logged_render(job, &first, &resources);
     assert!(log.heap_bytes() > 0, "the render logged its rays");
 
     let original: Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
@@ -788,14 +798,7 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
     // light reused: the lights changed; the same rays, all answered from the log), and a
     // point light added besides (its shadow rays come first at every point, so the logged
     // answers no longer line up with the rays cast: they must not be used).
-    let mut redder = original.clone();
-    let white = redder["materials"]
-        .as_array_mut()
-        .unwrap()
-        .iter_mut()
-        .find(|m| m["name"] == "white")
-        .expect("the room has a white material");
-    white["pbrMetallicRoughness"]["baseColorFactor"] = serde_json::json!([0.4, 0.8, 0.8, 1.0]);
+    let redder = with_white_recoloured(&original);
     let mut brighter = original.clone();
     set_lamp(&mut brighter, 40.0);
     let mut bulb = brighter.clone();
@@ -818,25 +821,7 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
         .push(bulb_node.into());
 
     let relit = |edited: &Loaded, log: Option<&mut ShadingLog>| {
-        let mut s = state.clone();
-        let mut stats = pipeline::new_stats(job, 0);
-        let refresh = Refresh {
-            relight_only: true,
-            albedo: true,
-        };
-        let keys = direct_keys(edited, 0);
-        let img = pipeline::render_frame_with(
-            job,
-            &edited.scene,
-            &resources,
-            &mut s,
-            0,
-            &mut stats,
-            refresh,
-            log.map(|l| (l, &keys)),
-        )
-        .unwrap();
-        image_text(&img)
+        relit_frame(job, edited, &resources, &state, log).0
     };
     for (name, g) in [
         ("white redder", &redder),
@@ -902,42 +887,13 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
     two["materials"][1]["emissiveFactor"] = serde_json::json!([0.6, 0.2, 0.2]);
     save_atomic(&gltf, &two);
     let before = load();
-    let mut state2 = FrameState::default();
-    let mut log2 = ShadingLog::default();
-    pipeline::render_frame_with(
-        job,
-        &before.scene,
-        &resources,
-        &mut state2,
-        0,
-        &mut pipeline::new_stats(job, 0),
-        Refresh::default(),
-        Some((&mut log2, &direct_keys(&before, 0))),
-    )
-    .unwrap();
+    let (state2, log2) = logged_render(job, &before, &resources);
     let mut two_brighter = two.clone();
     set_lamp(&mut two_brighter, 40.0);
     save_atomic(&gltf, &two_brighter);
     let edited = load();
     let relit2 = |log: Option<&mut ShadingLog>| {
-        let mut s = state2.clone();
-        let keys = direct_keys(&edited, 0);
-        let refresh = Refresh {
-            relight_only: true,
-            albedo: true,
-        };
-        let img = pipeline::render_frame_with(
-            job,
-            &edited.scene,
-            &resources,
-            &mut s,
-            0,
-            &mut pipeline::new_stats(job, 0),
-            refresh,
-            log.map(|l| (l, &keys)),
-        )
-        .unwrap();
-        image_text(&img)
+        relit_frame(job, &edited, &resources, &state2, log).0
     };
     assert!(relit2(Some(&mut log2.clone())) == relit2(None));
 }
