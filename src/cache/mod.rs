@@ -671,7 +671,16 @@ impl IrradianceCache {
                     (!covered).then_some((y * width + x, sp))
                 })
                 .collect();
-            self.add_records(frame, &needed, height, p, frame_number, false, resolve, timings);
+            self.add_records(
+                frame,
+                &needed,
+                height,
+                p,
+                frame_number,
+                false,
+                resolve,
+                timings,
+            );
             if spacing == 1 {
                 break;
             }
@@ -735,7 +744,16 @@ impl IrradianceCache {
                 break;
             }
             let chosen = spaced(&pending, width, height, reach);
-            self.add_records(frame, &chosen, height, p, frame_number, false, resolve, timings);
+            self.add_records(
+                frame,
+                &chosen,
+                height,
+                p,
+                frame_number,
+                false,
+                resolve,
+                timings,
+            );
         }
         if !spot {
             return;
@@ -757,7 +775,16 @@ impl IrradianceCache {
             } else {
                 pending.iter().map(|&&c| c).collect()
             };
-            self.add_records(frame, &chosen, height, p, frame_number, true, resolve, timings);
+            self.add_records(
+                frame,
+                &chosen,
+                height,
+                p,
+                frame_number,
+                true,
+                resolve,
+                timings,
+            );
         }
     }
 
@@ -1040,11 +1067,25 @@ mod tests {
         let hits = gather::trace_strata(&frame, &sp, 9, &p);
         let lit = |sp: &SurfacePoint| if sp.front { Vec3::ONE } else { Vec3::ZERO };
         let (strata, rad) = estimate_all(&[0.1], vec![hits], &lit).remove(0);
-        let widened = finish_record(&sp, Motion::Static, 9, 0.1, strata.clone(), &rad, &p, 0, false);
+        let widened = finish_record(
+            &sp,
+            Motion::Static,
+            9,
+            0.1,
+            strata.clone(),
+            &rad,
+            &p,
+            0,
+            false,
+        );
         let spot = finish_record(&sp, Motion::Static, 9, 0.1, strata, &rad, &p, 0, true);
         let r_min = p.min_spacing_px * 0.1 / p.error;
         assert_eq!(widened.radius, r_min, "the box makes Ward's radius small");
-        assert!(spot.spot && spot.radius < 0.5 * r_min, "{} against {r_min}", spot.radius);
+        assert!(
+            spot.spot && spot.radius < 0.5 * r_min,
+            "{} against {r_min}",
+            spot.radius
+        );
         assert_eq!(spot.irradiance, widened.irradiance);
         // An open record 0.3 away on the floor, whose radius a neighbour at the spot
         // record's place with its radius would clamp (to 2 · 0.3 + R_spot).
@@ -1053,7 +1094,10 @@ mod tests {
         let mut cache = IrradianceCache::default();
         cache.set_params(&p);
         cache.replace_records(vec![open.clone(), spot.clone()]);
-        assert_eq!(cache.records[0].reach_radius, 2.0, "a spot record clamps no one");
+        assert_eq!(
+            cache.records[0].reach_radius, 2.0,
+            "a spot record clamps no one"
+        );
         let (x, n, a) = (spot.position, Vec3::Y, RELAXED * p.error);
         let mut parts = Vec::new();
         // Open lookups read the open record only, even at the spot record's own place.

@@ -867,7 +867,10 @@ impl CachedShading<'_> {
                     self.cache
                         .interpolate(at.position, at.ns, RELAXED * a, parts)
                 })
-                .or_else(|| self.cache.interpolate_spot(at.position, at.ns, RELAXED * a, parts)),
+                .or_else(|| {
+                    self.cache
+                        .interpolate_spot(at.position, at.ns, RELAXED * a, parts)
+                }),
         };
         if self.replay.log {
             row.log.interpolation(parts);

@@ -689,7 +689,10 @@ fn logged_render(
     job: &anchorage::job::Job,
     loaded: &anchorage::watch::Loaded,
     resources: &anchorage::session::Resources,
-) -> (anchorage::session::FrameState, anchorage::integrator::replay::ShadingLog) {
+) -> (
+    anchorage::session::FrameState,
+    anchorage::integrator::replay::ShadingLog,
+) {
     use anchorage::integrator::cached::Refresh;
     let mut state = anchorage::session::FrameState::default();
     let mut log = anchorage::integrator::replay::ShadingLog::default();
@@ -892,8 +895,7 @@ fn a_relight_that_replays_the_logged_rays_gives_the_image_that_tracing_them_give
     set_lamp(&mut two_brighter, 40.0);
     save_atomic(&gltf, &two_brighter);
     let edited = load();
-    let relit2 = |log: Option<&mut ShadingLog>| {
-        relit_frame(job, &edited, &resources, &state2, log).0
-    };
+    let relit2 =
+        |log: Option<&mut ShadingLog>| relit_frame(job, &edited, &resources, &state2, log).0;
     assert!(relit2(Some(&mut log2.clone())) == relit2(None));
 }
