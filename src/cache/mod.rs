@@ -456,23 +456,24 @@ impl IrradianceCache {
         a: f32,
         parts: &mut Vec<Contribution>,
     ) -> Option<Interpolated> {
-        self.interpolate_by(x, n, a, parts, |r, x, n| {
-            if r.spot {
-                Self::ward_weight(r, x, n)
-            } else {
-                0.0
-            }
-        })
+        self.interpolate_by(x, n, a, parts, Self::spot_weight)
+    }
+
+    /// Ward's weight of a spot record at (x, n); 0 for any other record.
+    fn spot_weight(r: &Record, x: Vec3, n: Vec3) -> f32 {
+        if r.spot {
+            Self::ward_weight(r, x, n)
+        } else {
+            0.0
+        }
     }
 
     /// True if a spot record is valid at (x, n) to a.
     fn spot_covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
         !self.records.is_empty()
             && self.grid.with_candidates(x, |idx| {
-                idx.iter().any(|&i| {
-                    let r = &self.records[i as usize];
-                    r.spot && Self::ward_weight(r, x, n) > 1.0 / a
-                })
+                idx.iter()
+                    .any(|&i| Self::spot_weight(&self.records[i as usize], x, n) > 1.0 / a)
             })
     }
 
