@@ -157,6 +157,7 @@ pub fn render_frame_with(
             let t = &mut stats.timings_s;
             t.photon_tracing = gs.photon_tracing;
             t.irradiance_estimation = gs.irradiance_estimation;
+            t.attachment = gs.attachment;
             t.final_gathering = gs.final_gathering;
             t.cache_interpolation = gs.cache_interpolation;
             t.depth_maps = gs.depth_maps;

@@ -19,14 +19,20 @@ pub struct Timings {
     pub static_bvh: f64,
     pub dynamic_bvh: f64,
     /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
-    /// gather hits, or precomputation; for `anchors` also L_i re-estimation and attachment),
-    /// final gathering (tracing gather rays) and cache interpolation (shading from the cache,
-    /// glossy bucketing and reflection rays included). Pixel samples no record covers gather
-    /// on the spot: their rays count as final gathering, their photon look-ups (`anchors`:
-    /// anchor searches) as irradiance estimation, not as interpolation. Zero for methods
-    /// without that stage.
+    /// gather hits, or precomputation; for `anchors` the L_i of anchors, new and re-estimated,
+    /// and the records re-made from them), final gathering (tracing gather rays) and cache
+    /// interpolation (shading from the cache, glossy bucketing and reflection rays
+    /// included). Pixel samples no record covers gather on the spot: their rays count as
+    /// final gathering, their photon look-ups (`anchors`: anchor searches) as irradiance
+    /// estimation, not as interpolation. Zero for methods without that stage.
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
+    /// `anchors`: linking the gather hits of new records and re-shot strata to anchors
+    /// (Pseudocode 1: each hit's nearest photon, the search among the anchors with the tests
+    /// of §3.1 and its shadow ray, new anchors made where none passes). The paper's Table 1
+    /// counts it under final gathering; here it is a row of its own, apart from the rays.
+    #[serde(default)]
+    pub attachment: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).

@@ -177,6 +177,19 @@ impl Attacher<'_> {
     /// AttachToAnchor (Pseudocode 1) for a batch of static gather hits, in order (record,
     /// then stratum): the anchor each links to, the same for any thread count (module doc).
     pub fn attach_all(&self, set: &mut AnchorSet, hits: &[&SurfacePoint]) -> Vec<AnchorId> {
+        let (ids, created) = self.link_all(set, hits);
+        self.estimate_created(set, &created);
+        ids
+    }
+
+    /// Steps 1 and 2 of [`Attacher::attach_all`] and the photon claims of step 3: the
+    /// anchor each hit links to, and the anchors made, whose L_i is not estimated yet
+    /// ([`Attacher::estimate_created`]).
+    pub fn link_all(
+        &self,
+        set: &mut AnchorSet,
+        hits: &[&SurfacePoint],
+    ) -> (Vec<AnchorId>, Vec<AnchorId>) {
         // Step 1: search in parallel.
         let searches: Vec<Search> = {
             let set = &*set;
@@ -209,9 +222,13 @@ impl Attacher<'_> {
             }
             ids.push(id);
         }
-        // Step 3: the new anchors' L_i, estimated where the anchor is stored (quantised
-        // position and normal), exactly as later frames re-estimate it: the normal test
-        // against photons can tip on a fraction of a degree.
+        (ids, created)
+    }
+
+    /// Step 3 of [`Attacher::attach_all`] for the anchors `created`: their L_i, estimated
+    /// where each anchor is stored (quantised position and normal), exactly as later frames
+    /// re-estimate it: the normal test against photons can tip on a fraction of a degree.
+    pub fn estimate_created(&self, set: &mut AnchorSet, created: &[AnchorId]) {
         let q = set.quantizer;
         let k = self.params.anchor_k(self.k);
         let estimates: Vec<(Vec3, f32)> = {
@@ -229,7 +246,6 @@ impl Attacher<'_> {
             set.anchor_mut(id).set_irradiance(e);
             set.set_reach(id, r2);
         }
-        ids
     }
 }
 

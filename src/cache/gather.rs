@@ -84,6 +84,8 @@ pub struct GatherTimings {
     pub final_gathering: f64,
     /// Estimating radiance at gather hits (photon lookups).
     pub irradiance_estimation: f64,
+    /// `anchors`: linking gather hits to anchors (Pseudocode 1's search and new anchors).
+    pub attachment: f64,
     pub rays: u64,
 }
 

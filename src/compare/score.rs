@@ -52,6 +52,8 @@ pub struct Score {
 pub struct Table1 {
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
+    /// `anchors`: linking gather hits to anchors (the stats' `attachment`).
+    pub attachment: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     pub direct_lighting: f64,
@@ -238,6 +240,7 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
         table1_s: Table1 {
             photon_tracing: med(&|s| s.timings_s.photon_tracing),
             irradiance_estimation: med(&|s| s.timings_s.irradiance_estimation),
+            attachment: med(&|s| s.timings_s.attachment),
             final_gathering: med(&|s| s.timings_s.final_gathering),
             cache_interpolation: med(&|s| s.timings_s.cache_interpolation),
             direct_lighting: med(&|s| s.timings_s.direct_lighting),
@@ -247,6 +250,7 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
                 t.total
                     - (t.photon_tracing
                         + t.irradiance_estimation
+                        + t.attachment
                         + t.final_gathering
                         + t.cache_interpolation
                         + t.direct_lighting
@@ -314,6 +318,7 @@ pub(super) fn sample(n: usize) -> Report {
                 table1_s: Table1 {
                     photon_tracing: 0.01,
                     irradiance_estimation: 0.02,
+                    attachment: 0.03,
                     final_gathering: 0.1,
                     cache_interpolation: 0.01,
                     direct_lighting: 0.02,

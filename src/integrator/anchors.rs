@@ -60,13 +60,15 @@ pub struct AnchorStats {
 /// and stratum order). `previous` are the strata that re-shot hits replace: a re-shot ray
 /// that lands on static geometry at the distance it had before (its stratum was flagged, but
 /// nothing dynamic was in the way) keeps its anchor, as an unflagged stratum would;
-/// re-attaching it could pick another anchor and add flicker.
+/// re-attaching it could pick another anchor and add flicker. Adds the seconds spent
+/// linking hits to anchors (searching and making them; [`Attacher::link_all`]) to `linking`.
 fn resolve(
     att: &Attacher,
     set: &mut AnchorSet,
     footprints: &[f32],
     hits: Vec<Vec<GatherHit>>,
     previous: Option<&[Vec<Stratum>]>,
+    linking: &mut f64,
 ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
     // Estimated in the photon tree's spatial order (knn::query_order).
     let at_dynamic: Vec<&crate::interaction::SurfacePoint> = hits
@@ -125,7 +127,11 @@ fn resolve(
             _ => None,
         })
         .collect();
-    let mut attached = att.attach_all(set, &attaching).into_iter();
+    let t = Instant::now();
+    let (attached, created) = att.link_all(set, &attaching);
+    *linking += t.elapsed().as_secs_f64();
+    att.estimate_created(set, &created);
+    let mut attached = attached.into_iter();
     let mut out = Vec::with_capacity(hits.len());
     for (ri, (h, dyn_rad)) in hits.iter().zip(dynamic).enumerate() {
         let scale = footprints[ri];
@@ -472,8 +478,20 @@ fn reshoot_and_update(
         cache.keep_dynamic_hits(id, list.iter().copied().zip(h));
     }
     let t = Instant::now();
-    update_records(att, set, cache, &todo, hits, changed, cp, ctx.frame);
-    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    let mut linking = 0.0;
+    update_records(
+        att,
+        set,
+        cache,
+        &todo,
+        hits,
+        changed,
+        cp,
+        ctx.frame,
+        &mut linking,
+    );
+    timings.irradiance_estimation += t.elapsed().as_secs_f64() - linking;
+    timings.attachment += linking;
     rays
 }
 
@@ -565,6 +583,7 @@ fn update_records(
     changed: &[bool],
     cp: &CacheParams,
     frame: i32,
+    linking: &mut f64,
 ) {
     let footprints: Vec<f32> = cache.records.iter().map(|r| r.footprint).collect();
     let previous: Vec<Vec<Stratum>> = cache
@@ -573,7 +592,7 @@ fn update_records(
         .zip(todo)
         .map(|(r, list)| list.iter().map(|&s| r.strata[s as usize]).collect())
         .collect();
-    let resolved = resolve(att, set, &footprints, hits, Some(&previous));
+    let resolved = resolve(att, set, &footprints, hits, Some(&previous), linking);
     // Each anchor's radiance, decoded once for the many strata that read it.
     let radiance: Vec<Vec3> = set.anchors.par_iter().map(|a| a.radiance()).collect();
     let with: Vec<_> = resolved.into_iter().zip(todo).collect();
@@ -613,9 +632,10 @@ fn place_records(
     timings: &mut GatherTimings,
 ) {
     let first_new = cache.len();
+    let mut linking = 0.0;
     {
         let mut resolver =
-            |fp: &[f32], hits: Vec<Vec<GatherHit>>| resolve(att, set, fp, hits, None);
+            |fp: &[f32], hits: Vec<Vec<GatherHit>>| resolve(att, set, fp, hits, None, &mut linking);
         cache.place(
             ctx.scene,
             ctx.width,
@@ -628,6 +648,9 @@ fn place_records(
             timings,
         );
     }
+    // Placement timed the resolver as irradiance estimation; its linking is attachment.
+    timings.irradiance_estimation -= linking;
+    timings.attachment += linking;
     let set = &*set;
     cache.records[first_new..].par_iter_mut().for_each(|r| {
         let rad: Vec<Vec3> = r

@@ -440,12 +440,17 @@ fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
                 + t.dynamic_bvh
                 + t.photon_tracing
                 + t.irradiance_estimation
+                + t.attachment
                 + t.final_gathering
                 + t.cache_interpolation
                 + t.visibility
                 + t.depth_maps
                 + t.direct_lighting;
             eprintln!("  stages {rows:.4} s of {elapsed:.4} s: {t:?}");
+            // Linking hits to anchors is a row of its own, taken out of the spans that time
+            // irradiance estimation.
+            assert_eq!(t.attachment > 0.0, method == "anchors", "{method}: {t:?}");
+            assert!(t.irradiance_estimation > 0.0, "{method}: {t:?}");
             assert!(
                 rows <= elapsed,
                 "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
