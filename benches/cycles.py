@@ -69,10 +69,14 @@ def main():
     ap.add_argument("--frame", type=int, default=22)
     ap.add_argument("--size", default="128x96", help="WxH")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--cycles-samples", default="8,16,32,64,128")
+    ap.add_argument("--cycles-samples", default="8,16,32,64,128",
+                    help="empty: no Cycles rows and no Cycles reference")
     ap.add_argument("--path-samples", default="16,32,64,128,256")
     ap.add_argument("--presets", default="draft,production,final")
     ap.add_argument("--anchors-spp", default="16,64", help="camera samples per pixel")
+    ap.add_argument("--photons", default="",
+                    help="photon counts for the anchors rows (method.photons; "
+                         "empty: each preset's own)")
     ap.add_argument("--steady", type=int, default=3, help="frames anchors renders first")
     ap.add_argument("--converged", type=int, default=2048)
     ap.add_argument("--out", default=os.path.join(ROOT, "benches/render_cycles"))
@@ -128,9 +132,12 @@ def main():
             st = json.load(open(os.path.join(out, f"f.{args.frame:04d}.json")))
             return st["timings_s"]["total"], os.path.join(out, f"f.{args.frame:04d}.exr")
 
-        print(f"converging Cycles at {args.converged} spp ...", file=sys.stderr)
-        t_ref_c, ref_c = cycles(args.converged)
-        ref_c = cycles_images(ref_c)
+        cycles_samples = [int(s) for s in args.cycles_samples.split(",") if s]
+        t_ref_c = None
+        if cycles_samples:
+            print(f"converging Cycles at {args.converged} spp ...", file=sys.stderr)
+            t_ref_c, ref_c = cycles(args.converged)
+            ref_c = cycles_images(ref_c)
         print(f"converging anchorage's path tracer at {args.converged} ...", file=sys.stderr)
         t_ref_a, ref_a = anchorage("pt_ref", "path-trace", args.frame,
                                    {"path_samples": args.converged})
@@ -141,20 +148,26 @@ def main():
             rows.append((renderer, setting, seconds, rms_pct(b, ref[0]), rms_pct(i, ref[1])))
             print(f"{renderer} {setting}: {seconds:.2f} s", file=sys.stderr)
 
-        for s in map(int, args.cycles_samples.split(",")):
+        for s in cycles_samples:
             t, path = cycles(s)
             score("Cycles", f"{s} spp", t, cycles_images(path), ref_c)
         for s in map(int, args.path_samples.split(",")):
             t, path = anchorage(f"pt{s}", "path-trace", args.frame, {"path_samples": s})
             score("anchorage path-trace", f"{s} paths/px", t, anchorage_images(path), ref_a)
         first = max(job["frames"]["start"], args.frame - args.steady)
+        photons = [int(n) for n in args.photons.split(",") if n] or [None]
         for preset in args.presets.split(","):
             for spp in map(int, args.anchors_spp.split(",")):
-                t, path = anchorage(f"a_{preset}_{spp}", "anchors", first, {"preset": preset}, spp)
-                score("anchorage anchors", f"{preset}, {spp} spp", t, anchorage_images(path), ref_a)
+                for n in photons:
+                    method = {"preset": preset} | ({"photons": n} if n else {})
+                    setting = f"{preset}, {spp} spp" + (f", {n} photons" if n else "")
+                    t, path = anchorage(f"a_{preset}_{spp}_{n}", "anchors", first, method, spp)
+                    score("anchorage anchors", setting, t, anchorage_images(path), ref_a)
 
+    cycles_ref = (f"Cycles {args.converged} spp ({t_ref_c:.1f} s), " if t_ref_c is not None
+                  else "")
     print(f"{args.job}, frame {args.frame}, {width}x{height}, {args.threads} threads; "
-          f"references: Cycles {args.converged} spp ({t_ref_c:.1f} s), anchorage path-trace "
+          f"references: {cycles_ref}anchorage path-trace "
           f"{args.converged} paths/px ({t_ref_a:.1f} s)")
     print("| renderer | setting | s/frame | beauty RMS % | indirect RMS % |")
     print("|---|---|---:|---:|---:|")
