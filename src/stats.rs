@@ -29,8 +29,9 @@ pub struct Timings {
     pub irradiance_estimation: f64,
     /// `anchors`: linking the gather hits of new records and re-shot strata to anchors
     /// (Pseudocode 1: each hit's nearest photon, the search among the anchors with the tests
-    /// of §3.1 and its shadow ray, new anchors made where none passes). The paper's Table 1
-    /// counts it under final gathering; here it is a row of its own, apart from the rays.
+    /// of §3.1 and its shadow ray, new anchors made where none passes). In the paper's
+    /// Table 1 it would fall under final gathering (Pseudocode 2 attaches each stratum as
+    /// its ray is shot); here it is a row of its own, apart from the rays.
     #[serde(default)]
     pub attachment: f64,
     pub final_gathering: f64,
