@@ -190,24 +190,35 @@ impl Attacher<'_> {
         set: &mut AnchorSet,
         hits: &[&SurfacePoint],
     ) -> (Vec<AnchorId>, Vec<AnchorId>) {
-        // Step 1: search in parallel.
-        let searches: Vec<Search> = {
+        // Step 1: search in parallel. A hit's whole search is kept only where it found no
+        // anchor (step 2 reads it): most find one, and the batch holds millions.
+        let searches: Vec<Searched> = {
             let set = &*set;
             let positions: Vec<Vec3> = hits.iter().map(|sp| sp.position).collect();
-            crate::photon::knn::map_in_query_order(&positions, |i| self.search(set, hits[i]))
+            crate::photon::knn::map_in_query_order(&positions, |i| {
+                let s = self.search(set, hits[i]);
+                Searched {
+                    photon: s.photon.map(|ph| ph as u32),
+                    visited: s.visited as u32,
+                    found: match s.found {
+                        Some(id) => Ok(id),
+                        None => Err(Box::new(s)),
+                    },
+                }
+            })
         };
         let made = searches.iter().filter(|s| s.visited > 0).count() as u64;
-        let visited = searches.iter().map(|s| s.visited).sum();
+        let visited = searches.iter().map(|s| s.visited as u64).sum();
         set.tree.count(made, visited);
         // Step 2: create, in order, where the search found nothing.
         let mut fresh = KdTree::default();
         let mut created = Vec::new();
         let mut ids = Vec::with_capacity(hits.len());
         for (sp, s) in hits.iter().zip(&searches) {
-            let id = match s.found {
-                Some(id) => id,
-                None => {
-                    let (id, new) = self.create(set, &mut fresh, sp, s);
+            let id = match &s.found {
+                Ok(id) => *id,
+                Err(search) => {
+                    let (id, new) = self.create(set, &mut fresh, sp, search);
                     if new {
                         created.push(id);
                     }
@@ -215,7 +226,7 @@ impl Attacher<'_> {
                 }
             };
             // Step 3: the first claim on a photon keeps it (§3.3.2).
-            if let Some(ph) = s.photon
+            if let Some(ph) = s.photon.map(|ph| ph as usize)
                 && set.photon_links[ph].is_none()
             {
                 set.photon_links[ph] = Some(id);
@@ -247,6 +258,14 @@ impl Attacher<'_> {
             set.set_reach(id, r2);
         }
     }
+}
+
+/// What step 1 keeps of a hit's [`Search`]: the anchor found, or the whole search for
+/// step 2; the nearest photon, for step 3; the nodes it visited.
+struct Searched {
+    photon: Option<u32>,
+    visited: u32,
+    found: Result<AnchorId, Box<Search>>,
 }
 
 /// What step 1 (module doc) found for one hit.
