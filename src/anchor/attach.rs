@@ -2,8 +2,9 @@
 //! the nearest photon's anchor, else one of the nearest anchors within D_max that passes
 //! the reuse tests, else a new anchor at the hit.
 //!
-//! A gather's hits attach together ([`Attacher::attach_all`]), in three steps that give the
-//! same anchors for any thread count:
+//! A gather's hits attach together ([`Attacher::link_all`] for steps 1, 2 and the photon
+//! claims of step 3, then [`Attacher::estimate_created`] for the new anchors' L_i), in
+//! three steps that give the same anchors for any thread count:
 //!
 //! 1. *Search*, in parallel, read-only: every hit looks for its nearest photon and for an
 //!    acceptable anchor among those that existed before this batch (the photon's anchor,
@@ -175,16 +176,9 @@ impl Attacher<'_> {
     }
 
     /// AttachToAnchor (Pseudocode 1) for a batch of static gather hits, in order (record,
-    /// then stratum): the anchor each links to, the same for any thread count (module doc).
-    pub fn attach_all(&self, set: &mut AnchorSet, hits: &[&SurfacePoint]) -> Vec<AnchorId> {
-        let (ids, created) = self.link_all(set, hits);
-        self.estimate_created(set, &created);
-        ids
-    }
-
-    /// Steps 1 and 2 of [`Attacher::attach_all`] and the photon claims of step 3: the
-    /// anchor each hit links to, and the anchors made, whose L_i is not estimated yet
-    /// ([`Attacher::estimate_created`]).
+    /// then stratum) — steps 1 and 2 and the photon claims of step 3 (module doc): the
+    /// anchor each hit links to, the same for any thread count, and the anchors made, whose
+    /// L_i [`Attacher::estimate_created`] estimates.
     pub fn link_all(
         &self,
         set: &mut AnchorSet,
@@ -236,7 +230,7 @@ impl Attacher<'_> {
         (ids, created)
     }
 
-    /// Step 3 of [`Attacher::attach_all`] for the anchors `created`: their L_i, estimated
+    /// Step 3 (module doc) for the anchors `created`: their L_i, estimated
     /// where each anchor is stored (quantised position and normal), exactly as later frames
     /// re-estimate it: the normal test against photons can tip on a fraction of a degree.
     pub fn estimate_created(&self, set: &mut AnchorSet, created: &[AnchorId]) {

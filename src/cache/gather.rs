@@ -89,6 +89,15 @@ pub struct GatherTimings {
     pub rays: u64,
 }
 
+impl GatherTimings {
+    /// Moves `seconds` of linking hits to anchors, timed inside a resolver that counted as
+    /// irradiance estimation, to `attachment`.
+    pub fn linked(&mut self, seconds: f64) {
+        self.irradiance_estimation -= seconds;
+        self.attachment += seconds;
+    }
+}
+
 /// A record's gather rays: where they leave from and the frame and jitter of their
 /// directions, made once for all of its strata. The jitter inside a stratum depends on the
 /// record's id only, so a record's rays are the same in every frame.

@@ -56,7 +56,7 @@ pub struct AnchorStats {
 }
 
 /// Resolves gather hits for the anchor method: dynamic hits by the photon map, static hits
-/// by attachment ([`Attacher::attach_all`]: searched in parallel, new anchors made in record
+/// by attachment ([`Attacher::link_all`]: searched in parallel, new anchors made in record
 /// and stratum order). `previous` are the strata that re-shot hits replace: a re-shot ray
 /// that lands on static geometry at the distance it had before (its stratum was flagged, but
 /// nothing dynamic was in the way) keeps its anchor, as an unflagged stratum would;
@@ -490,8 +490,8 @@ fn reshoot_and_update(
         ctx.frame,
         &mut linking,
     );
-    timings.irradiance_estimation += t.elapsed().as_secs_f64() - linking;
-    timings.attachment += linking;
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    timings.linked(linking);
     rays
 }
 
@@ -648,9 +648,7 @@ fn place_records(
             timings,
         );
     }
-    // Placement timed the resolver as irradiance estimation; its linking is attachment.
-    timings.irradiance_estimation -= linking;
-    timings.attachment += linking;
+    timings.linked(linking);
     let set = &*set;
     cache.records[first_new..].par_iter_mut().for_each(|r| {
         let rad: Vec<Vec3> = r
