@@ -118,9 +118,11 @@ impl Attacher<'_> {
         // rebuilds it from the live ones).
         let (candidates, visited) = set.tree.search(x, d_max, 3, |_| true);
         search.visited = visited;
+        // The photon's anchor, if it is among them, failed the tests already.
         search.found = candidates
             .iter()
             .map(|&(_, id)| AnchorId(id))
+            .filter(|&id| Some(id) != linked)
             .find(|&id| self.acceptable(set, id, sp, albedo));
         search.near = candidates;
         search
@@ -192,7 +194,8 @@ impl Attacher<'_> {
             crate::photon::knn::map_in_query_order(&positions, |i| {
                 let s = self.search(set, hits[i]);
                 Searched {
-                    photon: s.photon.map(|ph| ph as u32),
+                    // A photon linked already keeps its anchor (step 3).
+                    photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
                     visited: s.visited as u32,
                     found: match s.found {
                         Some(id) => Ok(id),
@@ -255,7 +258,8 @@ impl Attacher<'_> {
 }
 
 /// What step 1 keeps of a hit's [`Search`]: the anchor found, or the whole search for
-/// step 2; the nearest photon, for step 3; the nodes it visited.
+/// step 2; the nearest photon if it had no anchor then, for step 3 (a linked one keeps
+/// its anchor, and links are not removed while a batch attaches); the nodes it visited.
 struct Searched {
     photon: Option<u32>,
     visited: u32,

@@ -226,13 +226,15 @@ pub fn query_order(points: &[Vec3]) -> Vec<u32> {
         let c = ((*p - lo) * scale).clamp(Vec3::ZERO, Vec3::splat(1023.0));
         spread(c.x as u32) | spread(c.y as u32) << 1 | spread(c.z as u32) << 2
     };
+    use rayon::prelude::*;
     let mut order: Vec<(u32, u32)> = points
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(i, p)| (if p.is_finite() { key(p) } else { 0 }, i as u32))
         .collect();
-    order.sort_unstable();
-    order.into_iter().map(|(_, i)| i).collect()
+    // Keys with their index are distinct: the order is the same however the sort splits.
+    order.par_sort_unstable();
+    order.into_par_iter().map(|(_, i)| i).collect()
 }
 
 /// `f(i)` for every point `i` of `points`, computed in parallel in [`query_order`] and
