@@ -71,7 +71,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cycles-samples", default="8,16,32,64,128",
                     help="empty: no Cycles rows and no Cycles reference")
-    ap.add_argument("--path-samples", default="16,32,64,128,256")
+    ap.add_argument("--path-samples", default="16,32,64,128,256",
+                    help="empty: no rows of our path tracer (its reference stays)")
     ap.add_argument("--presets", default="draft,production,final")
     ap.add_argument("--anchors-spp", default="16,64", help="camera samples per pixel")
     ap.add_argument("--photons", default="",
@@ -151,7 +152,7 @@ def main():
         for s in cycles_samples:
             t, path = cycles(s)
             score("Cycles", f"{s} spp", t, cycles_images(path), ref_c)
-        for s in map(int, args.path_samples.split(",")):
+        for s in [int(s) for s in args.path_samples.split(",") if s]:
             t, path = anchorage(f"pt{s}", "path-trace", args.frame, {"path_samples": s})
             score("anchorage path-trace", f"{s} paths/px", t, anchorage_images(path), ref_a)
         first = max(job["frames"]["start"], args.frame - args.steady)
