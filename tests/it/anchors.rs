@@ -234,6 +234,88 @@ fn a_gather_no_record_covers_reads_the_anchors_its_hits_would_link_to() {
     assert!(mean < 0.03, "{:.2} % over the frame", 100.0 * mean);
 }
 
+/// §3.3.2 within one batch of attachment ([`Attacher::link_all`]): a photon that no anchor
+/// had claimed before the batch links afterwards to the anchor of the first hit, in batch
+/// order, whose nearest photon it is; a photon claimed before keeps its anchor. (The
+/// example's gathers at camera hits after frames 10–13, as one batch.)
+#[test]
+fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
+    use anchorage::anchor::attach::Attacher;
+    use anchorage::cache::gather;
+    use anchorage::geom::Motion;
+    use anchorage::interaction::{Materials, camera_hit};
+    let job = example("anchors", "");
+    let last = 13;
+    let (scene, resources, mut state, _) = state_after(&job, 10..=last);
+    let (fs, pm) = frame_photons(&job, &scene, &resources, last);
+    let m = Materials {
+        materials: &scene.materials,
+        textures: &scene.textures,
+    };
+    let params = job.method.params();
+    let mut set = state.anchors.take().unwrap();
+    let att = Attacher {
+        frame: &fs,
+        m,
+        pm: &pm,
+        k: params.k as usize,
+        params: params.anchors,
+        scale: fs.static_radius(),
+        importance: None,
+    };
+    let mut gathers = Vec::new();
+    for y in (0..job.height).step_by(8) {
+        for x in (0..job.width).step_by(8) {
+            let sx = (x as f32 + 0.5) / job.width as f32;
+            let sy = (y as f32 + 0.5) / job.height as f32;
+            if let Some(sp) = camera_hit(&fs, sx, sy, None).2 {
+                let pixel = y * job.width + x;
+                gathers.push(gather::trace_strata(
+                    &fs,
+                    &sp,
+                    gather::uncached_record_id(pixel),
+                    &params.cache,
+                ));
+            }
+        }
+    }
+    let hits: Vec<_> = gathers
+        .iter()
+        .flatten()
+        .filter_map(|h| h.sp.as_ref())
+        .filter(|sp| sp.hit.motion == Motion::Static)
+        .collect();
+    // Each hit's nearest photon, as attachment searches it (within the photon radius).
+    let radius = params.anchors.photon_radius * att.scale;
+    let nearest = |x: glam::Vec3| {
+        pm.nearest_within(x, radius * (1.0 + 1e-5))
+            .filter(|&i| (pm.photons[i].position - x).length() <= radius)
+    };
+    let before = set.photon_links.clone();
+    let (ids, _) = att.link_all(&mut set, &hits);
+    let mut first = std::collections::HashMap::new();
+    for (sp, &id) in hits.iter().zip(&ids) {
+        if let Some(ph) = nearest(sp.position) {
+            first.entry(ph).or_insert(id);
+        }
+    }
+    let mut claimed = 0;
+    for (ph, (was, now)) in before.iter().zip(&set.photon_links).enumerate() {
+        match (was, first.get(&ph)) {
+            (Some(_), _) | (None, None) => assert_eq!(now, was, "photon {ph}"),
+            (None, Some(&id)) => {
+                assert_eq!(*now, Some(id), "photon {ph}");
+                claimed += 1;
+            }
+        }
+    }
+    eprintln!(
+        "{} hits, {claimed} photons claimed in the batch",
+        hits.len()
+    );
+    assert!(claimed > 0);
+}
+
 /// A floor, a wall at x = 3 lit by a point light, and a dynamic plate that slides in between
 /// the floor and the wall (frames 8–12) and away again (from frame 16). The indirect light on
 /// the floor must drop while the plate blocks the wall and come back once it has gone, and
