@@ -206,26 +206,37 @@ impl SurfaceClip {
     }
 
     /// [`SurfaceClip::area`] by integrating ½ρ(θ)² over [`CLIP_ANGLES`] directions.
+    ///
+    /// Line by line over all directions at once, the directions' cosines and sines in
+    /// arrays of their own, so that the compiler runs the divisions four or more to an
+    /// instruction: estimates near a crease of curved or finely tessellated surfaces meet
+    /// ten lines on average, and this loop was most of their time. The minimum does not
+    /// depend on the order the lines come in and the sum runs in direction order, so the
+    /// area is the same to the bit as direction by direction.
     fn integrated_area(&self) -> f32 {
-        static DIRECTIONS: std::sync::LazyLock<[Vec2; CLIP_ANGLES]> =
-            std::sync::LazyLock::new(|| {
-                std::array::from_fn(|i| {
-                    let theta = (i as f32 + 0.5) * 2.0 * PI / CLIP_ANGLES as f32;
-                    Vec2::new(theta.cos(), theta.sin())
-                })
-            });
-        let step = 2.0 * PI / CLIP_ANGLES as f32;
-        let mut sum = 0.0;
-        for &d in DIRECTIONS.iter() {
-            let mut rho = self.r;
-            for &(a, h) in &self.lines {
-                let ad = a.dot(d);
-                if ad < 0.0 {
-                    rho = rho.min(h / -ad);
-                }
-            }
-            sum += rho * rho;
+        struct Directions {
+            cos: [f32; CLIP_ANGLES],
+            sin: [f32; CLIP_ANGLES],
         }
+        static DIRECTIONS: std::sync::LazyLock<Directions> = std::sync::LazyLock::new(|| {
+            let theta = |i: usize| (i as f32 + 0.5) * 2.0 * PI / CLIP_ANGLES as f32;
+            Directions {
+                cos: std::array::from_fn(|i| theta(i).cos()),
+                sin: std::array::from_fn(|i| theta(i).sin()),
+            }
+        });
+        let d = &*DIRECTIONS;
+        let mut rho = [self.r; CLIP_ANGLES];
+        for &(a, h) in &self.lines {
+            for ((rho, &c), &s) in rho.iter_mut().zip(&d.cos).zip(&d.sin) {
+                // a · d, as `Vec2::dot` computes it.
+                let ad = a.x * c + a.y * s;
+                let cut = h / -ad;
+                *rho = if ad < 0.0 && cut < *rho { cut } else { *rho };
+            }
+        }
+        let step = 2.0 * PI / CLIP_ANGLES as f32;
+        let sum = rho.iter().fold(0.0f32, |sum, &rho| sum + rho * rho);
         0.5 * step * sum
     }
 }
@@ -888,6 +899,57 @@ mod tests {
         assert_eq!(sliver.area(), CLIP_MIN_SHARE * full);
         assert!(quarter.contains(Vec3::new(0.5, 0.0, 0.5)));
         assert!(!quarter.contains(Vec3::new(-0.5, 0.0, 0.5)));
+    }
+
+    /// The area integrated line by line over all directions is the area integrated
+    /// direction by direction (½ρ(θ)² at each direction, ρ the nearest line along it), to
+    /// the bit, for discs cut by up to 24 lines in any order.
+    #[test]
+    fn the_clipped_area_is_the_same_to_the_bit_as_direction_by_direction() {
+        let by_direction = |c: &SurfaceClip| {
+            let step = 2.0 * PI / CLIP_ANGLES as f32;
+            let mut sum = 0.0f32;
+            for i in 0..CLIP_ANGLES {
+                let theta = (i as f32 + 0.5) * 2.0 * PI / CLIP_ANGLES as f32;
+                let d = Vec2::new(theta.cos(), theta.sin());
+                let mut rho = c.r;
+                for &(a, h) in &c.lines {
+                    let ad = a.dot(d);
+                    if ad < 0.0 {
+                        rho = rho.min(h / -ad);
+                    }
+                }
+                sum += rho * rho;
+            }
+            0.5 * step * sum
+        };
+        // xorshift32: any spread of values will do.
+        let mut state = 0x9E37_79B9u32;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        };
+        for n in 2..=24 {
+            for _ in 0..20 {
+                let r = 0.01 + 3.0 * next();
+                let lines = (0..n)
+                    .map(|_| {
+                        let phi = 2.0 * PI * next();
+                        (Vec2::new(phi.cos(), phi.sin()), r * next())
+                    })
+                    .collect();
+                let c = SurfaceClip {
+                    lines,
+                    x: Vec3::ZERO,
+                    t: Vec3::X,
+                    b: Vec3::Z,
+                    r,
+                };
+                assert_eq!(c.integrated_area().to_bits(), by_direction(&c).to_bits());
+            }
+        }
     }
 
     /// A black floor (y = 0) whose vertex normals all lean 50° off its geometric normal —
