@@ -923,13 +923,11 @@ mod tests {
             }
             0.5 * step * sum
         };
-        // xorshift32: any spread of values will do.
-        let mut state = 0x9E37_79B9u32;
+        // Any spread of values in [0, 1) will do.
+        let mut drawn = 0u32;
         let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 17;
-            state ^= state << 5;
-            (state >> 8) as f32 / (1u32 << 24) as f32
+            drawn += 1;
+            (crate::sampling::hash(&[drawn]) >> 8) as f32 / (1u32 << 24) as f32
         };
         for n in 2..=24 {
             for _ in 0..20 {
