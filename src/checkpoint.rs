@@ -37,7 +37,7 @@ pub const MAGIC: &[u8; 8] = b"ANCHSTAT";
 
 /// The checkpoint format this build writes and reads. A change to [`FrameState`]'s serde
 /// layout or to this file's layout increments it.
-pub const FORMAT: u32 = 5;
+pub const FORMAT: u32 = 6;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
 /// memory budget; a file beyond this is not one of ours.

@@ -5,22 +5,26 @@
 //!
 //! Points live in leaf buckets of [`BUCKET`] slots, side by side in memory, so that a search
 //! reads a few contiguous buckets instead of one scattered node per point (the search is
-//! most of attachment's time, Pseudocode 1). A full bucket splits at the median of its
+//! most of attachment's time, Pseudocode 1). A bucket stores its coordinates axis by axis,
+//! so that a search measures the distances to all its points at once, in SIMD lanes, and
+//! looks closer only at those within its radius. A full bucket splits at the median of its
 //! widest axis, so insertion needs no rebuild; [`KdTree::balanced`] builds half-full buckets.
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-/// Points per leaf bucket.
+/// Points per leaf bucket (fewer than 32: a search marks a bucket's slots in a `u32`).
 pub const BUCKET: usize = 16;
+const _: () = assert!(BUCKET < 32);
 
 /// A bucketed kd-tree with incremental insertion (the anchor kd-tree of §3).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct KdTree {
     /// Node 0 is the root (when there is one); children come after their parent.
     nodes: Vec<KdNode>,
-    /// [`BUCKET`] slots per leaf: leaf `l` holds `points[l * BUCKET..][..len[l]]`.
-    points: Vec<Vec3>,
+    /// [`BUCKET`] slots per leaf: leaf `l` holds `buckets[l]`'s first `len[l]` points and
+    /// `items[l * BUCKET..][..len[l]]`.
+    buckets: Vec<Bucket>,
     items: Vec<u32>,
     len: Vec<u8>,
     /// Nodes (interior and leaves) visited by searches since the last reset.
@@ -39,6 +43,39 @@ struct KdNode {
 }
 
 const LEAF: u8 = 3;
+
+/// The points of a leaf, axis by axis (slots past the leaf's length hold zeros).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+struct Bucket {
+    x: [f32; BUCKET],
+    y: [f32; BUCKET],
+    z: [f32; BUCKET],
+}
+
+impl Bucket {
+    fn get(&self, s: usize) -> Vec3 {
+        Vec3::new(self.x[s], self.y[s], self.z[s])
+    }
+
+    fn set(&mut self, s: usize, p: Vec3) {
+        (self.x[s], self.y[s], self.z[s]) = (p.x, p.y, p.z);
+    }
+
+    /// The slots among the first `len` whose point lies within √`r2` of `p`, as bits, and
+    /// every slot's squared distance (computed as `(q - p).length_squared()` is).
+    fn within(&self, p: Vec3, r2: f32, len: usize) -> (u32, [f32; BUCKET]) {
+        let mut d2 = [0.0f32; BUCKET];
+        for (((d, &x), &y), &z) in d2.iter_mut().zip(&self.x).zip(&self.y).zip(&self.z) {
+            let (dx, dy, dz) = (x - p.x, y - p.y, z - p.z);
+            *d = dx * dx + dy * dy + dz * dz;
+        }
+        let mut mask = 0u32;
+        for (s, &d) in d2.iter().enumerate() {
+            mask |= u32::from(d <= r2) << s;
+        }
+        (mask & ((1u32 << len) - 1), d2)
+    }
+}
 
 /// What a search found: (squared distance, item), nearest first; on the stack for the few
 /// neighbours attachment asks for (§3.3.1: three).
@@ -64,7 +101,7 @@ impl KdTree {
     /// Bytes the tree holds on the heap (watch mode bounds the states it keeps by this).
     pub fn heap_bytes(&self) -> usize {
         self.nodes.len() * size_of::<KdNode>()
-            + self.points.len() * size_of::<Vec3>()
+            + self.buckets.len() * size_of::<Bucket>()
             + self.items.len() * size_of::<u32>()
             + self.len.len()
     }
@@ -74,7 +111,7 @@ impl KdTree {
     /// search ends), axes are 0..3 or a leaf, buckets and items in range.
     pub fn check(&self, items: usize) -> Result<(), String> {
         let leaves = self.len.len();
-        if self.points.len() != leaves * BUCKET || self.items.len() != leaves * BUCKET {
+        if self.buckets.len() != leaves || self.items.len() != leaves * BUCKET {
             return Err("anchor kd-tree buckets are malformed".into());
         }
         for (i, n) in self.nodes.iter().enumerate() {
@@ -117,10 +154,10 @@ impl KdTree {
 
     fn push_leaf(&mut self, pts: &[(Vec3, u32)]) -> u32 {
         let l = self.len.len();
-        self.points.resize((l + 1) * BUCKET, Vec3::ZERO);
+        self.buckets.push(Bucket::default());
         self.items.resize((l + 1) * BUCKET, u32::MAX);
         for (s, &(p, it)) in pts.iter().enumerate() {
-            self.points[l * BUCKET + s] = p;
+            self.buckets[l].set(s, p);
             self.items[l * BUCKET + s] = it;
         }
         self.len.push(pts.len() as u8);
@@ -153,7 +190,7 @@ impl KdTree {
             let l = n.a as usize;
             let len = self.len[l] as usize;
             if len < BUCKET {
-                self.points[l * BUCKET + len] = point;
+                self.buckets[l].set(len, point);
                 self.items[l * BUCKET + len] = item;
                 self.len[l] += 1;
                 return;
@@ -167,7 +204,7 @@ impl KdTree {
     fn split_leaf(&mut self, at: usize) {
         let l = self.nodes[at].a as usize;
         let mut pts: Vec<(Vec3, u32)> = (0..BUCKET)
-            .map(|s| (self.points[l * BUCKET + s], self.items[l * BUCKET + s]))
+            .map(|s| (self.buckets[l].get(s), self.items[l * BUCKET + s]))
             .collect();
         let axis = widest_axis(pts.iter().map(|p| p.0));
         pts.sort_unstable_by(|a, b| a.0[axis].total_cmp(&b.0[axis]).then(a.1.cmp(&b.1)));
@@ -175,10 +212,12 @@ impl KdTree {
         // equal to the split may lie on either side, and coincident points just chain).
         let mid = BUCKET / 2;
         let split = pts[mid].0[axis];
+        self.buckets[l] = Bucket::default();
         for (s, &(p, it)) in pts[..mid].iter().enumerate() {
-            self.points[l * BUCKET + s] = p;
+            self.buckets[l].set(s, p);
             self.items[l * BUCKET + s] = it;
         }
+        self.items[l * BUCKET + mid..][..BUCKET - mid].fill(u32::MAX);
         self.len[l] = mid as u8;
         self.nodes.push(KdNode {
             split: 0.0,
@@ -272,6 +311,8 @@ impl KdTree {
             return (best, visited);
         }
         let mut r2 = radius * radius;
+        // Indexed by a node's axis without a branch (a `Vec3` index is a jump table).
+        let axes = [p.x, p.y, p.z, 0.0];
         // Each pending subtree with the squared distance to its splitting plane, so that a
         // far side is skipped if the search radius shrank below it since it was pushed.
         let mut stack: smallvec::SmallVec<[(u32, f32); 64]> = smallvec::smallvec![(0, 0.0)];
@@ -282,11 +323,13 @@ impl KdTree {
             visited += 1;
             let n = self.nodes[i as usize];
             if n.axis == LEAF {
-                let at = n.a as usize * BUCKET;
-                let len = self.len[n.a as usize] as usize;
-                let (points, items) = (&self.points[at..at + len], &self.items[at..at + len]);
-                for (&q, &item) in points.iter().zip(items) {
-                    let d2 = (q - p).length_squared();
+                let l = n.a as usize;
+                let (mut within, d2s) = self.buckets[l].within(p, r2, self.len[l] as usize);
+                let items = &self.items[l * BUCKET..][..BUCKET];
+                while within != 0 {
+                    let s = within.trailing_zeros() as usize;
+                    within &= within - 1;
+                    let (d2, item) = (d2s[s], items[s]);
                     if d2 > r2 || (best.len() == k && (d2, item) >= best[k - 1]) || !accept(item) {
                         continue;
                     }
@@ -301,7 +344,7 @@ impl KdTree {
                 }
                 continue;
             }
-            let delta = p[n.axis as usize] - n.split;
+            let delta = axes[usize::from(n.axis & 3)] - n.split;
             let (near, far) = if delta < 0.0 { (n.a, n.b) } else { (n.b, n.a) };
             if delta * delta <= r2 {
                 stack.push((far, delta * delta));
@@ -353,13 +396,18 @@ mod tests {
         bal.check(pts.len()).unwrap();
         for q in 0..200u32 {
             let h = crate::sampling::hash(&[q, 7]);
+            // Some queries by the origin, taking every item: a bucket's empty slots hold
+            // zeros and must never be found.
+            let by_origin = q % 10 == 3;
             let at = if q == 0 {
                 Vec3::splat(5.0)
+            } else if by_origin {
+                Vec3::splat(0.002 * q as f32)
             } else {
                 Vec3::new((h & 1023) as f32, (h >> 10 & 1023) as f32, 500.0) * 0.01
             };
             let (r, k) = (0.3 + (q % 5) as f32 * 0.5, 1 + (q % 4) as usize);
-            let kept = |i: u32| !i.is_multiple_of(3);
+            let kept = |i: u32| by_origin || !i.is_multiple_of(3);
             let a = inc.nearest(at, r, k, kept);
             let b = bal.nearest(at, r, k, kept);
             let mut brute: Vec<(f32, u32)> = pts
