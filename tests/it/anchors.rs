@@ -236,8 +236,9 @@ fn a_gather_no_record_covers_reads_the_anchors_its_hits_would_link_to() {
 
 /// §3.3.2 within one batch of attachment ([`Attacher::link_all`]): a photon that no anchor
 /// had claimed before the batch links afterwards to the anchor of the first hit, in batch
-/// order, whose nearest photon it is; a photon claimed before keeps its anchor. (The
-/// example's gathers at camera hits after frames 10–13, as one batch.)
+/// order, whose nearest photon it is; a photon claimed before keeps its anchor; the anchors
+/// the batch makes enter the anchor tree as one by one. (The example's gathers at camera
+/// hits after frames 10–13, as one batch.)
 #[test]
 fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
     use anchorage::anchor::attach::Attacher;
@@ -292,7 +293,20 @@ fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
             .filter(|&i| (pm.photons[i].position - x).length() <= radius)
     };
     let before = set.photon_links.clone();
-    let (ids, _) = att.link_all(&mut set, &hits);
+    let tree_before = set.tree.clone();
+    let (ids, created) = att.link_all(&mut set, &hits);
+    // The batch's new anchors are in the set's tree, which is the tree that inserting them
+    // one by one, in the order they were made, gives (they are inserted on another thread).
+    set.check().unwrap();
+    assert!(!created.is_empty());
+    let mut one_by_one = tree_before;
+    // (Searches and visits the batch counted aside.)
+    (one_by_one.searches, one_by_one.visited) = (set.tree.searches, set.tree.visited);
+    for &id in &created {
+        one_by_one.insert(set.anchor(id).position(&set.quantizer), id.0);
+    }
+    assert!(one_by_one == set.tree, "the anchor tree after the batch");
+    assert_eq!(set.tree.len(), set.live_count());
     let mut first = std::collections::HashMap::new();
     for (sp, &id) in hits.iter().zip(&ids) {
         if let Some(ph) = nearest(sp.position) {
