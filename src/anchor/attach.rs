@@ -138,13 +138,11 @@ impl Attacher<'_> {
     /// links to since the search, else an acceptable one among the three nearest within
     /// D_max of the anchors before this batch (all rejected in step 1) and those this batch
     /// created (`fresh`, a tree of their ids), as one by one; else a new anchor (its L_i
-    /// estimated later, in step 3), which goes into `fresh` and to `tree` (the set's tree,
-    /// filled on another thread: step 2 searches only `fresh`).
+    /// estimated later, in step 3), which goes into `fresh`.
     fn create(
         &self,
         set: &mut AnchorSet,
         fresh: &mut KdTree,
-        tree: &std::sync::mpsc::Sender<(Vec3, u32)>,
         sp: &SurfacePoint,
         s: &Search,
     ) -> (AnchorId, bool) {
@@ -157,30 +155,25 @@ impl Attacher<'_> {
             return (a, false);
         }
         let (created, _) = fresh.search(sp.position, s.d_max, 3, |_| true);
-        if !created.is_empty() {
-            let mut nearest: smallvec::SmallVec<[(f32, u32, bool); 6]> = s
-                .near
-                .iter()
-                .map(|&(d2, id)| (d2, id, false))
-                .chain(created.iter().map(|&(d2, id)| (d2, id, true)))
-                .collect();
-            nearest.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            nearest.truncate(3);
-            if let Some(id) = nearest
-                .iter()
-                .filter(|c| c.2)
-                .map(|&(_, id, _)| AnchorId(id))
-                .find(|&id| self.acceptable(set, id, sp, s.albedo))
-            {
-                return (id, false);
-            }
+        let mut nearest: Vec<(f32, u32, bool)> = s
+            .near
+            .iter()
+            .map(|&(d2, id)| (d2, id, false))
+            .chain(created.iter().map(|&(d2, id)| (d2, id, true)))
+            .collect();
+        nearest.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        nearest.truncate(3);
+        if let Some(id) = nearest
+            .iter()
+            .filter(|c| c.2)
+            .map(|&(_, id, _)| AnchorId(id))
+            .find(|&id| self.acceptable(set, id, sp, s.albedo))
+        {
+            return (id, false);
         }
         let q = set.quantizer;
-        let id = set.place(Anchor::new(&q, sp.position, sp.ng, s.albedo, Vec3::ZERO));
-        let p = set.anchor(id).position(&q);
-        fresh.insert(p, id.0);
-        // The receiver lives until the sender is dropped (`link_all`).
-        let _ = tree.send((p, id.0));
+        let id = set.add(Anchor::new(&q, sp.position, sp.ng, s.albedo, Vec3::ZERO));
+        fresh.insert(set.anchor(id).position(&q), id.0);
         (id, true)
     }
 
@@ -214,46 +207,30 @@ impl Attacher<'_> {
         let made = searches.iter().filter(|s| s.visited > 0).count() as u64;
         let visited = searches.iter().map(|s| s.visited as u64).sum();
         set.tree.count(made, visited);
-        // Step 2: create, in order, where the search found nothing. The new anchors go into
-        // the set's tree in the order they are made (the same tree as one by one), on another
-        // thread where there is one: nothing reads that tree until the batch is linked.
-        let mut tree = std::mem::take(&mut set.tree);
-        let (to_tree, new_anchors) = std::sync::mpsc::channel();
-        let (linked, ()) = rayon::join(
-            || {
-                let mut fresh = KdTree::default();
-                let mut created = Vec::new();
-                let mut ids = Vec::with_capacity(hits.len());
-                for (sp, s) in hits.iter().zip(&searches) {
-                    let id = match &s.found {
-                        Ok(id) => *id,
-                        Err(search) => {
-                            let (id, new) = self.create(set, &mut fresh, &to_tree, sp, search);
-                            if new {
-                                created.push(id);
-                            }
-                            id
-                        }
-                    };
-                    // Step 3: the first claim on a photon keeps it (§3.3.2).
-                    if let Some(ph) = s.photon.map(|ph| ph as usize)
-                        && set.photon_links[ph].is_none()
-                    {
-                        set.photon_links[ph] = Some(id);
+        // Step 2: create, in order, where the search found nothing.
+        let mut fresh = KdTree::default();
+        let mut created = Vec::new();
+        let mut ids = Vec::with_capacity(hits.len());
+        for (sp, s) in hits.iter().zip(&searches) {
+            let id = match &s.found {
+                Ok(id) => *id,
+                Err(search) => {
+                    let (id, new) = self.create(set, &mut fresh, sp, search);
+                    if new {
+                        created.push(id);
                     }
-                    ids.push(id);
+                    id
                 }
-                drop(to_tree);
-                (ids, created)
-            },
-            || {
-                for (p, id) in new_anchors {
-                    tree.insert(p, id);
-                }
-            },
-        );
-        set.tree = tree;
-        linked
+            };
+            // Step 3: the first claim on a photon keeps it (§3.3.2).
+            if let Some(ph) = s.photon.map(|ph| ph as usize)
+                && set.photon_links[ph].is_none()
+            {
+                set.photon_links[ph] = Some(id);
+            }
+            ids.push(id);
+        }
+        (ids, created)
     }
 
     /// Step 3 (module doc) for the anchors `created`: their L_i, estimated

@@ -232,14 +232,6 @@ impl AnchorSet {
 
     /// Adds an anchor; returns its id (a free slot's id is reused).
     pub fn add(&mut self, a: Anchor) -> AnchorId {
-        let id = self.place(a);
-        self.tree.insert(a.position(&self.quantizer), id.0);
-        id
-    }
-
-    /// [`AnchorSet::add`] without the tree: the caller inserts the anchor into `tree`
-    /// (attachment inserts a batch's new anchors on another thread while it makes them).
-    pub fn place(&mut self, a: Anchor) -> AnchorId {
         let id = match self.free.pop() {
             Some(id) => {
                 self.anchors[id as usize] = a;
@@ -252,6 +244,7 @@ impl AnchorSet {
                 (self.anchors.len() - 1) as u32
             }
         };
+        self.tree.insert(a.position(&self.quantizer), id);
         self.created += 1;
         AnchorId(id)
     }

@@ -296,7 +296,7 @@ fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
     let tree_before = set.tree.clone();
     let (ids, created) = att.link_all(&mut set, &hits);
     // The batch's new anchors are in the set's tree, which is the tree that inserting them
-    // one by one, in the order they were made, gives (they are inserted on another thread).
+    // one by one, in the order they were made, gives.
     set.check().unwrap();
     assert!(!created.is_empty());
     let mut one_by_one = tree_before;
