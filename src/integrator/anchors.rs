@@ -356,10 +356,10 @@ fn reestimate_anchors(
     // those search unbounded at once (the same estimates either way). Where every photon
     // lies where it did (a light's intensity or colour edited), the reach holds exactly k.
     let near = !all || pm.same_places_as(&set.previous_photons);
-    let changed_tree = (!changed.is_empty() && !all).then(|| {
-        let pts: Vec<[f32; 3]> = changed.iter().map(|p| p.to_array()).collect();
-        kiddo::immutable::float::kdtree::ImmutableKdTree::<f32, u32, 3, 32>::new_from_slice(&pts)
-    });
+    // An anchor is untouched where no changed photon lies within its reach: a search
+    // bounded by the reach, which stops at the first it finds.
+    let changed_tree =
+        (!changed.is_empty() && !all).then(|| crate::photon::knn::PointTree::new(&changed));
     let set_ref = &*set;
     let positions = &at.positions;
     let fresh: Vec<Option<(Vec3, f32)>> = crate::photon::knn::map_in_order(&at.order, |i| {
@@ -369,13 +369,8 @@ fn reestimate_anchors(
         }
         let x = positions[i];
         let r2 = set_ref.reach2(AnchorId(i as u32));
-        let untouched = r2.is_finite()
-            && !all
-            && changed_tree.as_ref().is_none_or(|t| {
-                t.nearest_one::<kiddo::SquaredEuclidean>(&x.to_array())
-                    .distance
-                    > r2
-            });
+        let untouched =
+            r2.is_finite() && !all && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
         (!untouched).then(|| match near {
             true => pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2),
             false => pm.irradiance_and_radius(x, a.normal(), anchor_k),

@@ -117,6 +117,17 @@ impl PointTree {
         best
     }
 
+    /// Whether a point lies at squared distance at most `r2_max` from `x` (the answer of
+    /// [`PointTree::nearest_one`]`.is_some()`; the search stops at the first it finds).
+    pub fn any_within(&self, x: Vec3, r2_max: f32) -> bool {
+        let mut found = false;
+        self.search(x, r2_max, |_, _| {
+            found = true;
+            Some(f32::NEG_INFINITY) // nothing is nearer: every other branch is skipped
+        });
+        found
+    }
+
     /// Calls `f` with the up to `k` points nearest to `x` at squared distance at most
     /// `r2_max` (by squared distance, then index), in no particular order, each as (squared
     /// distance, position in the tree's order).
@@ -370,6 +381,18 @@ mod tests {
                 tree.nearest_one(x, r2),
                 brute(&points, x, r2, 1).first().copied()
             );
+            for r2 in [0.0001f32, 0.01, 0.25] {
+                let want = !brute(&points, x, r2, 1).is_empty();
+                assert_eq!(tree.any_within(x, r2), want, "query {q} at {x}, r2 {r2}");
+            }
+            // The nearest point's own squared distance counts; the next float below does not.
+            let nearest = brute(&points, x, f32::INFINITY, 1)[0].0;
+            let below = match nearest > 0.0 {
+                true => f32::from_bits(nearest.to_bits() - 1),
+                false => -1.0,
+            };
+            assert!(tree.any_within(x, nearest), "query {q} at {x}");
+            assert!(!tree.any_within(x, below), "query {q} at {x}");
         }
     }
 
@@ -411,6 +434,7 @@ mod tests {
         let tree = PointTree::new(&[]);
         assert!(tree.is_empty());
         assert_eq!(tree.nearest_one(Vec3::ZERO, f32::INFINITY), None);
+        assert!(!tree.any_within(Vec3::ZERO, f32::INFINITY));
         assert!(tree.nearest_within(Vec3::ZERO, 1.0, 8, |f| f.is_empty()));
         let tree = PointTree::new(&[Vec3::X, Vec3::Y]);
         let got = tree.nearest_within(Vec3::ZERO, 4.0, 8, |f| indexed(&tree, f));
