@@ -216,10 +216,12 @@ pub fn finish_record(
         .filter(|(s, l)| s.flags() & HIT_BACK != 0 && l.max_element() <= 0.0)
         .count();
     let enclosed = back as f32 > ENCLOSED_SHARE * strata.len() as f32;
-    let inv: f32 = strata
+    // Every stratum's distance in footprints, decoded once for the radius and the gradients.
+    let stored = stored_distances(&strata);
+    let inv: f32 = stored
         .iter()
-        .filter(|s| s.hit())
-        .map(|s| 1.0 / s.distance(footprint).max(f32::MIN_POSITIVE))
+        .filter(|d| d.is_finite())
+        .map(|&d| 1.0 / (d * footprint).max(f32::MIN_POSITIVE))
         .sum();
     let harmonic = if inv > 0.0 {
         (m * n) as f32 / inv
@@ -236,7 +238,8 @@ pub fn finish_record(
         harmonic.clamp(p.min_spacing_px * footprint / p.error, r_max)
     };
     let r_min = p.min_spacing_px * footprint / p.error;
-    let (grad_r, mut grad_t) = gradients(&strata, radiance, footprint, sp.ns, m, n, r_min);
+    let distances: Vec<f32> = stored.iter().map(|&d| d * footprint).collect();
+    let (grad_r, mut grad_t) = gradients(&distances, radiance, sp.ns, m, n, r_min);
     // Gradient limiting (Křivánek et al. 2006): extrapolation across the region where the
     // record is valid (a·R_i) may change each channel by at most its own value, so noisy
     // radiance next to a corner cannot turn into a large gradient.
@@ -315,6 +318,21 @@ impl Record {
     }
 }
 
+/// The strata's hit distances in units of the record's footprint ([`Stratum::distance`]
+/// with a scale of 1; infinite on a miss), converted together: half's slice conversion uses
+/// the CPU's f16 instructions where it has them, eight at a time, and the values are exact
+/// either way (every f16 is an f32).
+fn stored_distances(strata: &[Stratum]) -> Vec<f32> {
+    use half::slice::HalfFloatSliceExt;
+    let bits: Vec<half::f16> = strata
+        .iter()
+        .map(|s| half::f16::from_bits(s.0[2]))
+        .collect();
+    let mut d = vec![0.0f32; bits.len()];
+    bits.convert_to_f32_slice(&mut d);
+    d
+}
+
 /// Rotational and translational irradiance gradients from cosine-weighted strata (Ward &
 /// Heckbert 1992, in the form of Křivánek & Gautron 2009, eqs. 2.13–2.14):
 ///
@@ -322,12 +340,21 @@ impl Record {
 /// ∇_t E = Σ_k [ u_k (2π/N) Σ_{j≥1} sin θ_j− cos² θ_j− / min(r_{j−1,k}, r_jk) (L_jk − L_{j−1,k})
 ///             + v_k− Σ_j (sin θ_j+ − sin θ_j−) / min(r_jk, r_{j,k−1}) (L_jk − L_{j,k−1}) ]
 ///
-/// Distances below `r_min` (the record's smallest radius) count as `r_min`: a gather ray that
-/// grazes a corner says little about how irradiance changes over the record's extent.
+/// from the strata's `distances` (world units, infinite on a miss) and `radiance`, both in
+/// stratum order (ring j, then sector k). Distances below `r_min` (the record's smallest
+/// radius) count as `r_min`: a gather ray that grazes a corner says little about how
+/// irradiance changes over the record's extent.
+///
+/// The inner sums over j run for all sectors at once, ring by ring, each sector's sums in
+/// arrays of their own (one per colour channel), so that the compiler runs them four
+/// sectors to an instruction. Each sector's sums still add ring by ring and the sectors then
+/// add in order, so the gradients are the same to the bit as sector by sector (test
+/// `gradients_are_the_same_to_the_bit_as_sector_by_sector`). A steady frame re-makes almost
+/// every record from its anchors' new L_i; on Sponza at 1 800 strata, decoding the distances
+/// and the gradients took 27–31 % less time this way than stratum by stratum (README).
 fn gradients(
-    strata: &[Stratum],
+    distances: &[f32],
     radiance: &[Vec3],
-    scale: f32,
     n: Vec3,
     m: u32,
     nn: u32,
@@ -336,52 +363,240 @@ fn gradients(
     let (t, b) = basis(n);
     let mut gr = [Vec3::ZERO; 3];
     let mut gt = [Vec3::ZERO; 3];
-    let idx = |j: u32, k: u32| (j * nn + (k % nn)) as usize;
-    let distances: Vec<f32> = strata.iter().map(|s| s.distance(scale)).collect();
-    let dist = |i: usize| distances[i];
-    // Per ring j: tan θ at its centre, sin θ at its lower and upper edges.
-    let rings: Vec<[f32; 3]> = (0..m)
-        .map(|j| {
-            let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
-            let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
-            let sin_m = (j as f32 / m as f32).sqrt();
-            let sin_p = ((j + 1) as f32 / m as f32).sqrt();
-            [tan_c, sin_m, sin_p]
-        })
-        .collect();
+    let cols = nn as usize;
+    let cells = (m * nn) as usize;
+    let (distances, radiance) = (&distances[..cells], &radiance[..cells]);
+    // The radiance channel by channel, and per sector its three sums over the rings
+    // (rotational, θ and φ terms), channel by channel.
+    let channel = |c: usize| -> Vec<f32> { radiance.iter().map(|l| l[c]).collect() };
+    let l = [channel(0), channel(1), channel(2)];
+    let mut rot = [vec![0.0f32; cols], vec![0.0; cols], vec![0.0; cols]];
+    let mut theta = rot.clone();
+    let mut phi = rot.clone();
+    // Per sector of the ring at hand: the weights of its θ and φ differences, and whether
+    // each difference counts (a finite, positive distance).
+    let mut w_theta = vec![0.0f32; cols];
+    let mut w_phi = vec![0.0f32; cols];
+    // (As 0 or 1 in 32 bits: lanes as wide as the weights' select faster than bytes.)
+    let mut ok_theta = vec![0u32; cols];
+    let mut ok_phi = vec![0u32; cols];
+    for j in 0..m as usize {
+        // tan θ at the ring's centre, sin θ at its lower and upper edges.
+        let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
+        let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+        let sin_m = (j as f32 / m as f32).sqrt();
+        let sin_p = ((j + 1) as f32 / m as f32).sqrt();
+        let cos2 = 1.0 - sin_m * sin_m;
+        let row = j * cols..(j + 1) * cols;
+        let d = &distances[row.clone()];
+        // Towards the ring below (none for the first), and towards the sector before (the
+        // last, for the first).
+        let below = j.saturating_sub(1) * cols..j.max(1) * cols;
+        let weight = |w: &mut f32, ok: &mut u32, near: f32, r: f32, ds: f32| {
+            let r = r.min(ds).max(r_min);
+            *w = near / r;
+            *ok = u32::from(r.is_finite() & (r > 0.0));
+        };
+        if j > 0 {
+            let db = &distances[below.clone()];
+            for (((w, ok), &ds), &dsb) in w_theta.iter_mut().zip(&mut ok_theta).zip(d).zip(db) {
+                weight(w, ok, sin_m * cos2, dsb, ds);
+            }
+        }
+        if cols > 0 {
+            weight(
+                &mut w_phi[0],
+                &mut ok_phi[0],
+                sin_p - sin_m,
+                d[cols - 1],
+                d[0],
+            );
+            for (((w, ok), &ds), &dl) in w_phi[1..]
+                .iter_mut()
+                .zip(&mut ok_phi[1..])
+                .zip(&d[1..])
+                .zip(d)
+            {
+                weight(w, ok, sin_p - sin_m, dl, ds);
+            }
+        }
+        let add = |acc: &mut f32, ok: u32, w: f32, x: f32, y: f32| {
+            let sum = *acc + w * (x - y);
+            *acc = if ok != 0 { sum } else { *acc };
+        };
+        for c in 0..3 {
+            let lr = &l[c][row.clone()];
+            for (acc, &x) in rot[c].iter_mut().zip(lr) {
+                *acc -= tan_c * x;
+            }
+            if j > 0 {
+                let lb = &l[c][below.clone()];
+                for ((((acc, &ok), &w), &x), &y) in theta[c]
+                    .iter_mut()
+                    .zip(&ok_theta)
+                    .zip(&w_theta)
+                    .zip(lr)
+                    .zip(lb)
+                {
+                    add(acc, ok, w, x, y);
+                }
+            }
+            if cols > 0 {
+                add(&mut phi[c][0], ok_phi[0], w_phi[0], lr[0], lr[cols - 1]);
+                for ((((acc, &ok), &w), &x), &y) in phi[c][1..]
+                    .iter_mut()
+                    .zip(&ok_phi[1..])
+                    .zip(&w_phi[1..])
+                    .zip(&lr[1..])
+                    .zip(lr)
+                {
+                    add(acc, ok, w, x, y);
+                }
+            }
+        }
+    }
     for k in 0..nn {
         let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
         let phi_m = 2.0 * PI * k as f32 / nn as f32;
         let u_k = t * phi_c.cos() + b * phi_c.sin();
         let v_k = -t * phi_c.sin() + b * phi_c.cos();
         let v_km = -t * phi_m.sin() + b * phi_m.cos();
-        let mut rot = Vec3::ZERO;
-        let mut theta_term = Vec3::ZERO;
-        let mut phi_term = Vec3::ZERO;
-        for j in 0..m {
-            let s = idx(j, k);
-            let [tan_c, sin_m, sin_p] = rings[j as usize];
-            rot -= tan_c * radiance[s];
-            if j > 0 {
-                let prev = idx(j - 1, k);
-                let r = dist(prev).min(dist(s)).max(r_min);
-                if r.is_finite() && r > 0.0 {
-                    let cos2 = 1.0 - sin_m * sin_m;
-                    theta_term += (sin_m * cos2 / r) * (radiance[s] - radiance[prev]);
-                }
-            }
-            let left = idx(j, k + nn - 1);
-            let r = dist(left).min(dist(s)).max(r_min);
-            if r.is_finite() && r > 0.0 {
-                phi_term += ((sin_p - sin_m) / r) * (radiance[s] - radiance[left]);
-            }
-        }
-        rot *= PI / (m * nn) as f32;
-        theta_term *= 2.0 * PI / nn as f32;
+        let at = |sums: &[Vec<f32>; 3]| Vec3::from_array(sums.each_ref().map(|s| s[k as usize]));
+        let rot = at(&rot) * (PI / (m * nn) as f32);
+        let theta_term = at(&theta) * (2.0 * PI / nn as f32);
+        let phi_term = at(&phi);
         for c in 0..3 {
             gr[c] += v_k * rot[c];
             gt[c] += u_k * theta_term[c] + v_km * phi_term[c];
         }
     }
     (gr, gt)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// [`gradients`] as the formula reads (Ward & Heckbert; Křivánek & Gautron, eqs.
+    /// 2.13–2.14), sector by sector, each stratum's distance decoded on its own.
+    fn gradients_by_sector(
+        strata: &[Stratum],
+        radiance: &[Vec3],
+        scale: f32,
+        n: Vec3,
+        m: u32,
+        nn: u32,
+        r_min: f32,
+    ) -> ([Vec3; 3], [Vec3; 3]) {
+        let (t, b) = basis(n);
+        let mut gr = [Vec3::ZERO; 3];
+        let mut gt = [Vec3::ZERO; 3];
+        let idx = |j: u32, k: u32| (j * nn + (k % nn)) as usize;
+        let distances: Vec<f32> = strata.iter().map(|s| s.distance(scale)).collect();
+        let dist = |i: usize| distances[i];
+        // Per ring j: tan θ at its centre, sin θ at its lower and upper edges.
+        let rings: Vec<[f32; 3]> = (0..m)
+            .map(|j| {
+                let sin_c = ((j as f32 + 0.5) / m as f32).sqrt();
+                let tan_c = sin_c / (1.0 - sin_c * sin_c).max(1e-12).sqrt();
+                let sin_m = (j as f32 / m as f32).sqrt();
+                let sin_p = ((j + 1) as f32 / m as f32).sqrt();
+                [tan_c, sin_m, sin_p]
+            })
+            .collect();
+        for k in 0..nn {
+            let phi_c = 2.0 * PI * (k as f32 + 0.5) / nn as f32;
+            let phi_m = 2.0 * PI * k as f32 / nn as f32;
+            let u_k = t * phi_c.cos() + b * phi_c.sin();
+            let v_k = -t * phi_c.sin() + b * phi_c.cos();
+            let v_km = -t * phi_m.sin() + b * phi_m.cos();
+            let mut rot = Vec3::ZERO;
+            let mut theta_term = Vec3::ZERO;
+            let mut phi_term = Vec3::ZERO;
+            for j in 0..m {
+                let s = idx(j, k);
+                let [tan_c, sin_m, sin_p] = rings[j as usize];
+                rot -= tan_c * radiance[s];
+                if j > 0 {
+                    let prev = idx(j - 1, k);
+                    let r = dist(prev).min(dist(s)).max(r_min);
+                    if r.is_finite() && r > 0.0 {
+                        let cos2 = 1.0 - sin_m * sin_m;
+                        theta_term += (sin_m * cos2 / r) * (radiance[s] - radiance[prev]);
+                    }
+                }
+                let left = idx(j, k + nn - 1);
+                let r = dist(left).min(dist(s)).max(r_min);
+                if r.is_finite() && r > 0.0 {
+                    phi_term += ((sin_p - sin_m) / r) * (radiance[s] - radiance[left]);
+                }
+            }
+            rot *= PI / (m * nn) as f32;
+            theta_term *= 2.0 * PI / nn as f32;
+            for c in 0..3 {
+                gr[c] += v_k * rot[c];
+                gt[c] += u_k * theta_term[c] + v_km * phi_term[c];
+            }
+        }
+        (gr, gt)
+    }
+
+    /// Records' worth of strata on several layouts — hits near and far, misses, distances
+    /// below the minimum radius and zero ones, radiance of every size — give the same
+    /// gradients to the bit as the reference, through the same decoding of the distances.
+    /// Seen failing with the differences' product regrouped, and with misses' differences
+    /// added (times a weight of zero).
+    #[test]
+    fn gradients_are_the_same_to_the_bit_as_sector_by_sector() {
+        let mut state = 11u32;
+        let mut unit = || {
+            state = crate::sampling::hash(&[state]);
+            state as f32 / u32::MAX as f32
+        };
+        for case in 0..300 {
+            let [m, nn] = [[1, 1], [2, 3], [4, 16], [12, 36], [30, 60], [3, 1]][case % 6];
+            let footprint = [1e-3f32, 0.02, 7.0][case % 3];
+            let strata: Vec<Stratum> = (0..m * nn)
+                .map(|_| {
+                    let d = match (unit() * 8.0) as u32 {
+                        0 => f32::INFINITY,
+                        1 => 0.0,
+                        2 => footprint * unit() * 0.5,
+                        _ => footprint * (unit() * 200.0).exp2().min(1e30),
+                    };
+                    Stratum::new(None, 0, d, footprint)
+                })
+                .collect();
+            // Now and then an infinite channel: a difference across a miss must not count
+            // (its weight is zero, but zero times infinity is not).
+            let radiance: Vec<Vec3> = (0..m * nn)
+                .map(|_| match (unit() * 50.0) as u32 {
+                    0 => Vec3::new(f32::INFINITY, 1.0, 0.0),
+                    _ => Vec3::new(unit(), unit(), unit()) * (unit() * 20.0 - 10.0).exp2(),
+                })
+                .collect();
+            let n = Vec3::new(unit() - 0.5, unit() - 0.5, unit() - 0.5).normalize();
+            let r_min = footprint * [0.0, 0.5, 3.0][case % 3];
+            let distances: Vec<f32> = stored_distances(&strata)
+                .iter()
+                .map(|&d| d * footprint)
+                .collect();
+            let by_stratum: Vec<f32> = strata.iter().map(|s| s.distance(footprint)).collect();
+            assert_eq!(
+                distances.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
+                by_stratum.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
+                "case {case}"
+            );
+            let bits = |g: ([Vec3; 3], [Vec3; 3])| {
+                [g.0, g.1].map(|v| v.map(|v| v.to_array().map(f32::to_bits)))
+            };
+            assert_eq!(
+                bits(gradients(&distances, &radiance, n, m, nn, r_min)),
+                bits(gradients_by_sector(
+                    &strata, &radiance, footprint, n, m, nn, r_min
+                )),
+                "case {case}"
+            );
+        }
+    }
 }
