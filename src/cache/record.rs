@@ -404,14 +404,16 @@ fn gradients(
         let d = &distances[row.clone()];
         // Towards the ring below (none for the first), and towards the sector before (the
         // last, for the first).
-        let below = j.saturating_sub(1) * cols..j.max(1) * cols;
-        let weight = |w: &mut f32, ok: &mut u32, near: f32, r: f32, ds: f32| {
-            let r = r.min(ds).max(r_min);
-            *w = near / r;
+        let below = (j > 0).then(|| (j - 1) * cols..j * cols);
+        // A difference's weight `top / r`, r the nearer of the two strata's distances (the
+        // neighbour's `dn`, this one's `ds`) but no nearer than `r_min`, and whether it counts.
+        let weight = |w: &mut f32, ok: &mut u32, top: f32, dn: f32, ds: f32| {
+            let r = dn.min(ds).max(r_min);
+            *w = top / r;
             *ok = u32::from(r.is_finite() & (r > 0.0));
         };
-        if j > 0 {
-            let db = &distances[below.clone()];
+        if let Some(below) = below.clone() {
+            let db = &distances[below];
             for (((w, ok), &ds), &dsb) in w_theta.iter_mut().zip(&mut ok_theta).zip(d).zip(db) {
                 weight(w, ok, sin_m * cos2, dsb, ds);
             }
@@ -442,8 +444,8 @@ fn gradients(
             for (acc, &x) in rot[c].iter_mut().zip(lr) {
                 *acc -= tan_c * x;
             }
-            if j > 0 {
-                let lb = &l[c][below.clone()];
+            if let Some(below) = below.clone() {
+                let lb = &l[c][below];
                 for ((((acc, &ok), &w), &x), &y) in theta[c]
                     .iter_mut()
                     .zip(&ok_theta)
