@@ -430,7 +430,8 @@ mod tests {
 
     #[test]
     fn a_balanced_tree_fills_its_buckets_and_splits_them_on_insertion() {
-        let pts: Vec<(Vec3, u32)> = (0..5000u32)
+        // 256 × BUCKET points: median splits halve them evenly, down to full buckets.
+        let pts: Vec<(Vec3, u32)> = (0..256 * BUCKET as u32)
             .map(|i| {
                 let h = crate::sampling::hash(&[i, 3]);
                 let p = Vec3::new((h & 1023) as f32, (h >> 10 & 1023) as f32, 0.0);
@@ -450,13 +451,14 @@ mod tests {
             leaves <= pts.len().div_ceil(BUCKET / 2 + 1),
             "{leaves} leaves"
         );
+        assert!(t.len.iter().all(|&l| l as usize == BUCKET));
         // An insertion into a full bucket splits it.
-        let full = t.len.iter().filter(|&&l| l as usize == BUCKET).count();
+        let n = pts.len() as u32;
         for (i, &(p, _)) in pts.iter().enumerate().take(200) {
-            t.insert(p + Vec3::splat(0.25), 5000 + i as u32);
+            t.insert(p + Vec3::splat(0.25), n + i as u32);
         }
-        t.check(5200).unwrap();
-        assert_eq!(t.len(), 5200);
-        assert!(full == 0 || t.len.len() > leaves);
+        t.check(pts.len() + 200).unwrap();
+        assert_eq!(t.len(), pts.len() + 200);
+        assert!(t.len.len() > leaves);
     }
 }

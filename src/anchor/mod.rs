@@ -282,7 +282,7 @@ impl AnchorSet {
     pub fn rebalance_if_needed(&mut self, factor: f64) -> bool {
         let live = self.live_count();
         let n = live.max(2) as f64;
-        let grown = self.created > 0 && self.created.saturating_mul(4) > live as u64;
+        let grown = self.created.saturating_mul(4) > live as u64;
         let needed =
             grown || (self.tree.searches > 0 && self.tree.mean_visited() > factor * n.log2());
         if needed {
