@@ -142,6 +142,19 @@ struct SurfaceClip {
     r: f32,
 }
 
+/// Buffers [`PhotonMap::estimate`] reuses from query to query on a thread: the clip's
+/// lines and the photons on the disc (position, power), which the clip then tests.
+#[derive(Default)]
+struct EstimateScratch {
+    lines: Vec<(Vec2, f32)>,
+    on_disc: Vec<(Vec3, Vec3)>,
+}
+
+thread_local! {
+    static ESTIMATE_SCRATCH: std::cell::RefCell<EstimateScratch> =
+        std::cell::RefCell::new(EstimateScratch::default());
+}
+
 /// Directions over which [`SurfaceClip::area`] integrates a disc that two or more lines cut
 /// (midpoint rule in angle; one line is exact): a quarter disc, whose boundary runs
 /// through the centre, comes out within 0.5 % of πr²/4.
@@ -153,31 +166,46 @@ const CLIP_ANGLES: usize = 256;
 const CLIP_MIN_SHARE: f32 = 0.125;
 
 impl SurfaceClip {
-    fn new<'a>(x: Vec3, n: Vec3, r: f32, others: impl Iterator<Item = &'a Photon>) -> Self {
+    /// A disc that nothing cuts yet, its lines kept in `lines` (emptied; a buffer reused
+    /// from estimate to estimate); [`SurfaceClip::cut_by`] adds the photons off it.
+    fn new(x: Vec3, n: Vec3, r: f32, mut lines: Vec<(Vec2, f32)>) -> Self {
         let (t, b) = basis(n);
-        let mut lines: Vec<(Vec2, f32)> = Vec::new();
-        for p in others {
-            // A photon above the disc whose surface faces the query point: that surface
-            // bounds the disc's (a concave crease; the query point may lie on it, at the
-            // crease itself). One below the disc or facing away — a convex edge's side,
-            // the back of a thin wall — does not.
-            let c = (x - p.position).dot(p.normal);
-            let a = Vec2::new(t.dot(p.normal), b.dot(p.normal));
-            let len = a.length();
-            let above = (p.position - x).dot(n) > 0.0;
-            if !(above && c >= 0.0) || len < 1e-3 || c >= r * len {
-                continue; // behind it, parallel to the disc, or cutting beyond its rim
-            }
-            let (a, h) = (a / len, c / len);
-            // Photons on one plane all give this line: keep one of them.
-            if !lines
-                .iter()
-                .any(|&(a2, h2)| a2.dot(a) > 0.9999 && (h2 - h).abs() <= 1e-3 * r)
-            {
-                lines.push((a, h));
-            }
-        }
+        lines.clear();
         SurfaceClip { lines, x, t, b, r }
+    }
+
+    /// Adds the line that photon `p`, which lies off the disc at height `above_by` over its
+    /// plane (`(p − x)·n`), cuts it along, if any. The tests run cheapest first: most
+    /// photons off a disc lie below it or face away.
+    fn cut_by(&mut self, p: &Photon, above_by: f32) {
+        let (x, r) = (self.x, self.r);
+        // A photon above the disc whose surface faces the query point: that surface
+        // bounds the disc's (a concave crease; the query point may lie on it, at the
+        // crease itself). One below the disc or facing away — a convex edge's side,
+        // the back of a thin wall — does not.
+        if !(above_by > 0.0) {
+            return;
+        }
+        let c = (x - p.position).dot(p.normal);
+        if !(c >= 0.0) {
+            return;
+        }
+        let a = Vec2::new(self.t.dot(p.normal), self.b.dot(p.normal));
+        let len = a.length();
+        if len < 1e-3 || c >= r * len {
+            return; // parallel to the disc, or cutting beyond its rim
+        }
+        let (a, h) = (a / len, c / len);
+        // Photons on one plane all give this line: keep one of them. They come in the
+        // search's order, plane by plane, so the latest line is the likeliest match.
+        if !self
+            .lines
+            .iter()
+            .rev()
+            .any(|&(a2, h2)| a2.dot(a) > 0.9999 && (h2 - h).abs() <= 1e-3 * r)
+        {
+            self.lines.push((a, h));
+        }
     }
 
     /// Whether `y` (a photon on the disc) lies on the kept side of every line.
@@ -482,19 +510,39 @@ impl PhotonMap {
         // are (Jensen 2001, §7.2).
         let r = r2.sqrt();
         let thickness = DISC_THICKNESS * r;
-        let on_disc =
-            |p: &Photon| p.normal.dot(n) > 0.5 && (p.position - x).dot(n).abs() <= thickness;
-        let photons = || found.iter().map(|nb| &self.ordered[nb.1 as usize]);
-        let clip = SurfaceClip::new(x, n, r, photons().filter(|p| !on_disc(p)));
-        if clip.lines.is_empty() {
-            let sum: Vec3 = photons().filter(|p| on_disc(p)).map(|p| p.power).sum();
-            return (sum / (PI * r2), r2);
-        }
-        let sum: Vec3 = photons()
-            .filter(|p| on_disc(p) && clip.contains(p.position))
-            .map(|p| p.power)
-            .sum();
-        (sum / clip.area(), r2)
+        ESTIMATE_SCRATCH.with(|cell| {
+            let mut scratch = cell.take(); // empty where a query inside this one holds it
+            let mut clip = SurfaceClip::new(x, n, r, std::mem::take(&mut scratch.lines));
+            let on_disc = &mut scratch.on_disc;
+            on_disc.clear();
+            // One pass sums the photons on the disc, keeps them for the clip's test, and
+            // lets the others cut it. Where none cuts it (a disc away from creases), that
+            // sum is the estimate's.
+            let mut sum = Vec3::ZERO;
+            for nb in found {
+                let p = &self.ordered[nb.1 as usize];
+                let above_by = (p.position - x).dot(n);
+                if p.normal.dot(n) > 0.5 && above_by.abs() <= thickness {
+                    sum += p.power;
+                    on_disc.push((p.position, p.power));
+                } else {
+                    clip.cut_by(p, above_by);
+                }
+            }
+            let estimate = if clip.lines.is_empty() {
+                sum / (PI * r2)
+            } else {
+                let sum: Vec3 = on_disc
+                    .iter()
+                    .filter(|(y, _)| clip.contains(*y))
+                    .map(|(_, power)| *power)
+                    .sum();
+                sum / clip.area()
+            };
+            scratch.lines = clip.lines;
+            cell.replace(scratch);
+            (estimate, r2)
+        })
     }
 
     /// Positions of the photons that differ from those of `previous`, path by path: where
