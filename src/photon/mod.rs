@@ -916,6 +916,53 @@ mod tests {
         }
     }
 
+    /// Which photons off a disc cut it: one above it on a surface facing the query point (a
+    /// wall rising from the floor), once per plane; not one below it (a step down), one
+    /// facing away (a convex edge's far side), one parallel to it, or one beyond its rim.
+    #[test]
+    fn only_surfaces_facing_the_disc_from_above_cut_it() {
+        let photon = |position: Vec3, normal: Vec3| Photon {
+            position,
+            normal,
+            power: Vec3::ONE,
+        };
+        let lines = |photons: &[Photon]| {
+            let mut clip = SurfaceClip::new(Vec3::ZERO, Vec3::Y, 1.0, Vec::new());
+            for p in photons {
+                clip.cut_by(p, p.position.dot(Vec3::Y));
+            }
+            clip.lines
+        };
+        let wall = [
+            photon(Vec3::new(0.5, 0.1, 0.0), -Vec3::X),
+            photon(Vec3::new(0.5, 0.3, 0.2), -Vec3::X),
+        ];
+        let cut = lines(&wall);
+        assert_eq!(cut.len(), 1, "one wall, one line: {cut:?}");
+        assert!(
+            (cut[0].1 - 0.5).abs() < 1e-6,
+            "the wall stands 0.5 away: {cut:?}"
+        );
+        for (what, p) in [
+            (
+                "below the disc",
+                photon(Vec3::new(0.5, -0.1, 0.0), -Vec3::X),
+            ),
+            ("facing away", photon(Vec3::new(0.5, 0.1, 0.0), Vec3::X)),
+            // Almost level with the disc, and tilted too little to tell its direction.
+            (
+                "parallel",
+                photon(
+                    Vec3::new(0.5, 2e-4, 0.0),
+                    Vec3::new(-9e-4, -1.0, 0.0).normalize(),
+                ),
+            ),
+            ("beyond the rim", photon(Vec3::new(1.5, 0.1, 0.0), -Vec3::X)),
+        ] {
+            assert!(lines(&[p]).is_empty(), "a photon {what} cut the disc");
+        }
+    }
+
     /// The clipped disc's area: exact for one line, within 0.5 % for a quarter disc whose
     /// two lines run through the centre, and never below [`CLIP_MIN_SHARE`].
     #[test]
