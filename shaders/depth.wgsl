@@ -2,10 +2,13 @@
 // query ray against the frame's static and dynamic BVH2s (obvhs's, flattened by
 // src/visibility/depth_gpu.rs). The traversal mirrors obvhs's `ray_traverse_dynamic` and the
 // triangle test mirrors `ShearedRay::intersect_barycentric` in src/accel.rs (Woop, Benthin &
-// Wald's watertight test) in f32. Where the CPU decides in f64 (an edge function exactly
-// zero, a t within its error bound of zero), where an alpha-tested triangle lies in front of
-// the nearest hit (no textures here), and where the stack would overflow, the query is
-// answered UNDECIDED and the CPU traces it (src/visibility/depth.rs, module doc).
+// Wald's watertight test) in f32. A triangle the CPU decides in f64 (an edge function
+// exactly zero, a t within its error bound of zero: a ray leaving the surface it starts on)
+// is answered as PENDING, up to two per query: the CPU tests those triangles alone and keeps
+// the nearer of their answers and the shader's. Where more are pending, where an
+// alpha-tested triangle lies in front of the nearest hit (no textures here), and where the
+// stack would overflow, the query is answered UNDECIDED and the CPU traces it
+// (src/visibility/depth.rs, module doc).
 
 struct Params {
     // Queries in this dispatch, starting at `offset`.
@@ -34,8 +37,8 @@ struct Params {
 // Per query two vec4: origin, direction (w unused).
 @group(0) @binding(5) var<storage, read> queries: array<vec4<f32>>;
 // Per query: bits of t, and the triangle's index with bit 31 set for dynamic ones, or MISS
-// or UNDECIDED.
-@group(0) @binding(6) var<storage, read_write> hits: array<vec2<u32>>;
+// or UNDECIDED; then the pending triangles, coded alike, MISS where there are none.
+@group(0) @binding(6) var<storage, read_write> hits: array<vec4<u32>>;
 
 const MISS: u32 = 0xffffffffu;
 const UNDECIDED: u32 = 0xfffffffeu;
@@ -61,6 +64,28 @@ struct Best {
     code: u32,
     // The nearest t at which the answer is not decided here (FAR when none).
     undecided: f32,
+    // Triangles left to the CPU's own test (MISS when none).
+    pending0: u32,
+    pending1: u32,
+}
+
+// The code of the triangle in BVH slot word `a` (its index) of the dynamic or static BVH.
+fn code_of(a: vec4<u32>, dynamic: bool) -> u32 {
+    if dynamic {
+        return a.w | 0x80000000u;
+    }
+    return a.w;
+}
+
+// Leaves the triangle `code` to the CPU: a pending slot if one is free, else the whole query.
+fn pend(best: ptr<function, Best>, code: u32) {
+    if (*best).pending0 == MISS {
+        (*best).pending0 = code;
+    } else if (*best).pending1 == MISS {
+        (*best).pending1 = code;
+    } else {
+        (*best).undecided = 0.0;
+    }
 }
 
 // obvhs's `safe_inverse`, with Rust's `signum` (±1 by the sign bit, never 0: WGSL's `sign`
@@ -142,8 +167,12 @@ fn intersect(r: Ray, dynamic: bool, slot: u32, best: ptr<function, Best>) {
     let e1 = p2.x * p0.y - p2.y * p0.x;
     let e2 = p0.x * p1.y - p0.y * p1.x;
     if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
-        // The CPU decides this in f64.
-        (*best).undecided = 0.0;
+        // The CPU decides this in f64 (an alpha-tested triangle needs its texture too).
+        if b.w != 0u {
+            (*best).undecided = 0.0;
+        } else {
+            pend(best, code_of(a, dynamic));
+        }
         return;
     }
     if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
@@ -176,7 +205,11 @@ fn intersect(r: Ray, dynamic: bool, slot: u32, best: ptr<function, Best>) {
     }
     if t <= delta_t {
         // At the origin within rounding: the CPU decides this in f64.
-        (*best).undecided = 0.0;
+        if b.w != 0u {
+            (*best).undecided = 0.0;
+        } else {
+            pend(best, code_of(a, dynamic));
+        }
         return;
     }
     if b.w != 0u {
@@ -185,11 +218,7 @@ fn intersect(r: Ray, dynamic: bool, slot: u32, best: ptr<function, Best>) {
         return;
     }
     (*best).t = t;
-    var code = a.w;
-    if dynamic {
-        code = code | 0x80000000u;
-    }
-    (*best).code = code;
+    (*best).code = code_of(a, dynamic);
 }
 
 fn leaf(r: Ray, dynamic: bool, hi: vec4<u32>, count: u32, best: ptr<function, Best>) {
@@ -277,7 +306,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let i = params.offset + local;
     let r = make_ray(queries[2u * i].xyz, queries[2u * i + 1u].xyz);
-    var best = Best(FAR, MISS, FAR);
+    var best = Best(FAR, MISS, FAR, MISS, MISS);
     // Static first, then dynamic, as `Accel::closest`: a dynamic hit must be strictly nearer.
     if params.has_static != 0u {
         traverse(r, false, &best);
@@ -286,8 +315,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         traverse(r, true, &best);
     }
     if best.undecided < FAR && best.undecided <= best.t {
-        hits[local] = vec2<u32>(0u, UNDECIDED);
+        hits[local] = vec4<u32>(0u, UNDECIDED, MISS, MISS);
     } else {
-        hits[local] = vec2<u32>(bitcast<u32>(best.t), best.code);
+        hits[local] = vec4<u32>(bitcast<u32>(best.t), best.code, best.pending0, best.pending1);
     }
 }

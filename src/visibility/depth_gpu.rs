@@ -9,17 +9,23 @@
 //! on the first frame that needs it and kept while its [`crate::accel::StaticBvh::id`] stays
 //! the same (a whole render); the dynamic one is uploaded per call. Queries go in chunks that
 //! respect the adapter's storage-binding size and dispatch limits, each answered with one
-//! invocation per query; queries the shader leaves undecided are traced on the CPU.
+//! invocation per query. A triangle the CPU would decide in f64 — above all the surface a
+//! query starts on, whose `t` is zero within rounding — does not send its query back whole:
+//! the shader names it (two per query at most), and the CPU tests just that triangle with its
+//! own test ([`crate::accel::hit_distance`]) and keeps the nearer answer. Queries the shader
+//! leaves undecided (more such triangles, an alpha-tested one in front, a stack overflow) are
+//! traced on the CPU. Packing the queries and reading the answers run in parallel, in order.
 
 use std::borrow::Cow;
 use std::sync::{Mutex, OnceLock};
 
 use obvhs::bvh2::Bvh2;
+use rayon::prelude::*;
 use wgpu::util::DeviceExt;
 
 use super::Error;
 use super::depth::{DepthMaps, DepthQuery, closest_on_cpu};
-use crate::accel::{Hit, gamma};
+use crate::accel::{Hit, ShearedRay, canonical, gamma, hit_distance};
 use crate::geom::{Geometry, Motion};
 use crate::scene::FrameScene;
 
@@ -38,9 +44,10 @@ struct Params {
 }
 
 const WORKGROUP: u64 = 64;
-/// Bytes of one query (origin and direction, a 16-byte word each) and of one answer.
+/// Bytes of one query (origin and direction, a 16-byte word each) and of one answer (t, the
+/// triangle, two pending triangles).
 const QUERY_BYTES: u64 = 32;
-const HIT_BYTES: u64 = 8;
+const HIT_BYTES: u64 = 16;
 /// Queries per chunk at most: keeps one submission short (no driver watchdog) and the
 /// staging memory modest.
 const MAX_CHUNK: u64 = 1 << 20;
@@ -257,20 +264,20 @@ impl GpuDepthMaps {
         Ok(up)
     }
 
-    /// Runs one chunk of queries; the shader's raw answers.
-    fn run_chunk(
+    /// Runs one chunk of queries and hands the shader's raw answers, as mapped, to `read`.
+    fn run_chunk<R>(
         &self,
         (pipeline, layout): &(wgpu::ComputePipeline, wgpu::BindGroupLayout),
-        statics: &Uploaded,
-        dynamic: &Uploaded,
+        (statics, dynamic): (&Uploaded, &Uploaded),
         queries: &[DepthQuery],
-    ) -> Result<Vec<[u32; 2]>, Error> {
-        let data: Vec<[f32; 4]> = queries
-            .iter()
-            .flat_map(|q| {
+        read: impl FnOnce(&[[u32; 4]]) -> R,
+    ) -> Result<R, Error> {
+        let data: Vec<[[f32; 4]; 2]> = queries
+            .par_iter()
+            .map(|q| {
                 [
                     q.origin.extend(0.0).to_array(),
-                    crate::accel::canonical(q.dir).extend(0.0).to_array(),
+                    canonical(q.dir).extend(0.0).to_array(),
                 ]
             })
             .collect();
@@ -352,9 +359,8 @@ impl GpuDepthMaps {
             pass.dispatch_workgroups(groups_x as u32, groups_y as u32, 1);
         }
         encoder.copy_buffer_to_buffer(&b_hits, 0, &b_read, 0, out_bytes);
-        let raw: Vec<[u32; 2]> = submit_and_read(&self.device, &self.queue, encoder, &b_read)
-            .map_err(|e| self.failed(format!("reading depths back: {e}")))?;
-        Ok(raw)
+        submit_and_map(&self.device, &self.queue, encoder, &b_read, read)
+            .map_err(|e| self.failed(format!("reading depths back: {e}")))
     }
 
     /// Queries per chunk: within the binding size, the 2D dispatch and [`MAX_CHUNK`].
@@ -365,14 +371,15 @@ impl GpuDepthMaps {
             .clamp(1, MAX_CHUNK) as usize
     }
 
-    /// Answers `queries` and counts those the shader left to the CPU.
+    /// Answers `queries`; counts the queries the shader left to the CPU whole, and those it
+    /// left a triangle of to the CPU's test.
     pub fn closest_counting(
         &self,
         frame: &FrameScene,
         queries: &[DepthQuery],
-    ) -> Result<(Vec<Option<Hit>>, usize), Error> {
+    ) -> Result<(Vec<Option<Hit>>, usize, usize), Error> {
         if queries.is_empty() {
-            return Ok((Vec::new(), 0));
+            return Ok((Vec::new(), 0, 0));
         }
         let pipeline = self.pipeline()?;
         let statics = self.statics(frame)?;
@@ -384,48 +391,99 @@ impl GpuDepthMaps {
                 &frame.dynamic_geometry,
             )?;
             let mut out = Vec::with_capacity(queries.len());
-            let mut undecided = 0;
+            let (mut undecided, mut pending) = (0, 0);
             for qs in queries.chunks(self.chunk()) {
-                let raw = self.run_chunk(pipeline, &statics, &dynamic, qs)?;
-                for (q, &[t, code]) in qs.iter().zip(&raw) {
-                    out.push(match code {
-                        MISS => None,
-                        UNDECIDED => {
-                            undecided += 1;
-                            closest_on_cpu(frame, q)
-                        }
-                        c => Some(Hit {
-                            t: f32::from_bits(t),
-                            motion: if c & DYNAMIC_BIT != 0 {
-                                Motion::Dynamic
-                            } else {
-                                Motion::Static
-                            },
-                            triangle: c & !DYNAMIC_BIT,
-                        }),
-                    });
-                }
+                let start = out.len();
+                out.resize(start + qs.len(), None);
+                let answers = &mut out[start..];
+                self.run_chunk(pipeline, (&statics, &dynamic), qs, |raw| {
+                    undecided += raw.iter().filter(|w| w[1] == UNDECIDED).count();
+                    pending += raw.iter().filter(|w| w[2] != MISS).count();
+                    answers
+                        .par_iter_mut()
+                        .zip(qs.par_iter().zip(raw.par_iter()))
+                        .try_for_each(|(a, (q, &words))| {
+                            *a = answer(frame, q, words)?;
+                            Ok(())
+                        })
+                })?
+                .map_err(|e: String| self.failed(e))?;
             }
-            Ok((out, undecided))
+            Ok((out, undecided, pending))
         })();
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(self.failed(e));
         }
-        let (out, undecided) = result?;
-        // Guard against a triangle index the geometry does not have (a corrupt answer must
-        // not become a panic further on).
-        for h in out.iter().flatten() {
-            if h.triangle as usize >= frame.geometry(h.motion).len() {
-                return Err(self.failed(format!(
-                    "the shader answered triangle {} of {:?} geometry, which has {}",
-                    h.triangle,
-                    h.motion,
-                    frame.geometry(h.motion).len()
-                )));
-            }
-        }
-        Ok((out, undecided))
+        result
     }
+}
+
+/// The triangle a shader code names, or an error when the geometry has no such triangle (a
+/// corrupt answer must not become a panic further on).
+fn decode(frame: &FrameScene, code: u32) -> Result<(Motion, u32), String> {
+    let motion = if code & DYNAMIC_BIT != 0 {
+        Motion::Dynamic
+    } else {
+        Motion::Static
+    };
+    let triangle = code & !DYNAMIC_BIT;
+    let len = frame.geometry(motion).len();
+    if triangle as usize >= len {
+        return Err(format!(
+            "the shader answered triangle {triangle} of {motion:?} geometry, which has {len}"
+        ));
+    }
+    Ok((motion, triangle))
+}
+
+/// One query's answer from the shader's words (t, triangle, two pending triangles): the
+/// CPU's trace where the shader left it undecided; else the shader's hit, replaced by a
+/// pending triangle that the CPU's own test finds nearer — or as near, when it is static
+/// and the hit dynamic, as [`crate::accel::Accel::closest`] keeps the static one then.
+fn answer(
+    frame: &FrameScene,
+    q: &DepthQuery,
+    [t, code, p0, p1]: [u32; 4],
+) -> Result<Option<Hit>, String> {
+    let mut best = match code {
+        UNDECIDED => return Ok(closest_on_cpu(frame, q)),
+        MISS => None,
+        c => {
+            let (motion, triangle) = decode(frame, c)?;
+            Some(Hit {
+                t: f32::from_bits(t),
+                motion,
+                triangle,
+            })
+        }
+    };
+    if p0 == MISS {
+        return Ok(best);
+    }
+    let ray = ShearedRay::new(q.origin, canonical(q.dir));
+    for p in [p0, p1].into_iter().filter(|&p| p != MISS) {
+        let (motion, triangle) = decode(frame, p)?;
+        let t = hit_distance(
+            &ray,
+            frame.geometry(motion),
+            triangle as usize,
+            f32::INFINITY,
+        );
+        let nearer = match best {
+            None => t.is_finite(),
+            Some(h) => {
+                t < h.t || (t == h.t && motion == Motion::Static && h.motion == Motion::Dynamic)
+            }
+        };
+        if nearer {
+            best = Some(Hit {
+                t,
+                motion,
+                triangle,
+            });
+        }
+    }
+    Ok(best)
 }
 
 impl DepthMaps for GpuDepthMaps {
@@ -441,18 +499,20 @@ impl DepthMaps for GpuDepthMaps {
         frame: &FrameScene,
         queries: &[DepthQuery],
     ) -> Result<Vec<Option<Hit>>, Error> {
-        self.closest_counting(frame, queries).map(|(h, _)| h)
+        self.closest_counting(frame, queries).map(|(h, ..)| h)
     }
 }
 
-/// Submits `encoder` (for the depth maps here and for visibility in `gpu.rs`), whose last command copies results into `read` (a `MAP_READ` buffer),
-/// waits for the device and returns `read`'s contents.
-pub(super) fn submit_and_read<T: bytemuck::Pod>(
+/// Submits `encoder` (for the depth maps here and for visibility in `gpu.rs`), whose last
+/// command copies results into `read` (a `MAP_READ` buffer), waits for the device and hands
+/// `read`'s contents, as mapped, to `f`.
+pub(super) fn submit_and_map<T: bytemuck::Pod, R>(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
     encoder: wgpu::CommandEncoder,
     read: &wgpu::Buffer,
-) -> Result<Vec<T>, String> {
+    f: impl FnOnce(&[T]) -> R,
+) -> Result<R, String> {
     queue.submit([encoder.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();
     read.slice(..)
@@ -464,10 +524,12 @@ pub(super) fn submit_and_read<T: bytemuck::Pod>(
         .map_err(|e| e.to_string())?
         .map_err(|e| e.to_string())?;
     let view = read.get_mapped_range(..).map_err(|e| e.to_string())?;
-    let out = bytemuck::cast_slice(&view).to_vec();
+    let out = bytemuck::try_cast_slice(&view)
+        .map(f)
+        .map_err(|e| e.to_string());
     drop(view);
     read.unmap();
-    Ok(out)
+    out
 }
 
 #[cfg(test)]
@@ -478,23 +540,34 @@ mod tests {
     use super::*;
 
     /// Compares the GPU's answers with the CPU's: the same triangle at the same distance
-    /// within [`T_TOLERANCE`], except at most one query in [`GRAZING_SHARE`] (module doc of
+    /// within [`T_TOLERANCE`] of the larger of the distance and the triangle's reach from the
+    /// origin, except at most one query in [`GRAZING_SHARE`] (module doc of
     /// [`super::super::depth`]), and (without alpha-tested triangles) at most 2 % of the
     /// queries left to the CPU (the axis-aligned ones, 1 %, meet faces edge-on); returns
-    /// (queries that differ, hits, undecided).
-    fn compare(gpu: &GpuDepthMaps, frame: &FrameScene, qs: &[DepthQuery]) -> (usize, usize, usize) {
+    /// (queries that differ, hits, undecided, with a pending triangle).
+    fn compare(
+        gpu: &GpuDepthMaps,
+        frame: &FrameScene,
+        qs: &[DepthQuery],
+    ) -> (usize, usize, usize, usize) {
         let cpu = CpuDepthMaps.closest(frame, qs).unwrap();
-        let (g, undecided) = gpu.closest_counting(frame, qs).unwrap();
+        let (g, undecided, pending) = gpu.closest_counting(frame, qs).unwrap();
         assert_eq!(g.len(), qs.len());
         let mut differ = 0;
         let mut max_rel = 0.0f32;
         for (i, (c, g)) in cpu.iter().zip(&g).enumerate() {
             match (c, g) {
                 (Some(c), Some(g)) if c.motion == g.motion && c.triangle == g.triangle => {
-                    let rel = (c.t - g.t).abs() / c.t.abs().max(f32::MIN_POSITIVE);
+                    let tri = &frame.geometry(c.motion).triangles[c.triangle as usize];
+                    let o = glam::Vec3A::from(qs[i].origin);
+                    let reach = [tri.v0, tri.v1, tri.v2]
+                        .map(|v| (v - o).length())
+                        .into_iter()
+                        .fold(c.t.abs(), f32::max);
+                    let rel = (c.t - g.t).abs() / reach.max(f32::MIN_POSITIVE);
                     assert!(
                         rel <= T_TOLERANCE,
-                        "query {i}: t {} vs {} ({rel})",
+                        "query {i}: t {} vs {} ({rel} of {reach})",
                         c.t,
                         g.t
                     );
@@ -511,7 +584,8 @@ mod tests {
         let misses = (cpu.len() - hits, g.iter().filter(|h| h.is_none()).count());
         eprintln!(
             "{} queries: {hits} hits, misses cpu {} gpu {}, {differ} differ, {undecided} \
-             undecided, largest relative difference of t {max_rel:e}",
+             undecided, {pending} with a pending triangle, largest difference of t \
+             {max_rel:e} of the triangle's reach",
             qs.len(),
             misses.0,
             misses.1
@@ -526,7 +600,7 @@ mod tests {
             "{differ} of {} queries hit something else on the GPU",
             qs.len()
         );
-        (differ, hits, undecided)
+        (differ, hits, undecided, pending)
     }
 
     /// Random triangle soups inside a closed box (static), a dynamic soup, queries from
@@ -549,7 +623,7 @@ mod tests {
             for frame_no in 0..2u32 {
                 let frame = frame_with(&set, soup(seed * 7 + frame_no, 200, 5.0, 0.6));
                 let qs = queries(seed * 3 + frame_no, 20_000, 7.0);
-                let (_, hits, _) = compare(gpu, &frame, &qs);
+                let (_, hits, ..) = compare(gpu, &frame, &qs);
                 let dynamic = CpuDepthMaps
                     .closest(&frame, &qs)
                     .unwrap()
@@ -567,13 +641,58 @@ mod tests {
         }
         // Without static geometry, and with nothing at all: misses everywhere but the soup.
         let frame = frame(crate::geom::Geometry::default(), soup(9, 100, 2.0, 0.5));
-        let (_, hits, _) = compare(gpu, &frame, &queries(9, 5000, 3.0));
+        let (_, hits, ..) = compare(gpu, &frame, &queries(9, 5000, 3.0));
         assert!(hits > 100 && hits < 5000);
         let empty = frame_with(
             &crate::scene::StaticSet::new(crate::geom::Geometry::default()),
             crate::geom::Geometry::default(),
         );
         assert_eq!(compare(gpu, &empty, &queries(9, 100, 3.0)).1, 0);
+    }
+
+    /// Rays leaving a surface — a glossy floor's depth maps — meet the floor itself at a `t`
+    /// within rounding of zero, which only the CPU's f64 test decides: the shader leaves
+    /// that one triangle to the CPU, not the whole query, so (nearly) no query is traced on
+    /// the CPU, and the answers are the CPU's: the floor is no hit for rays leaving it, and
+    /// the nearest hit for rays turned into it.
+    #[test]
+    fn gpu_depth_maps_decide_rays_leaving_a_surface() {
+        let Some(vis) = adapter_for_tests() else {
+            return;
+        };
+        let frame = frame(closed_box(4.0), soup(5, 200, 5.0, 0.6));
+        let qs = queries_from_floor(5, 20_000, 4.0);
+        let (differ, hits, undecided, pending) = compare(vis.depth(), &frame, &qs);
+        assert_eq!(hits, qs.len(), "the box is closed");
+        assert_eq!(differ, 0);
+        assert!(
+            undecided * 100 <= qs.len(),
+            "{undecided} queries traced on the CPU"
+        );
+        // The floor's own triangles were met on the way out: the case this test is about.
+        assert!(
+            pending * 4 > qs.len(),
+            "{pending} queries met the floor within rounding"
+        );
+        // The same rays turned down meet the floor just below their origins: where that
+        // hit is within rounding of zero, only the pending triangle's test finds it.
+        let down: Vec<DepthQuery> = qs
+            .iter()
+            .map(|q| DepthQuery {
+                origin: q.origin,
+                dir: q.dir * glam::Vec3::new(1.0, -1.0, 1.0),
+            })
+            .collect();
+        let (differ, _, undecided, pending) = compare(vis.depth(), &frame, &down);
+        assert_eq!(differ, 0);
+        assert!(
+            undecided * 100 <= qs.len(),
+            "{undecided} queries traced on the CPU"
+        );
+        assert!(
+            pending * 4 > qs.len(),
+            "{pending} queries met the floor within rounding"
+        );
     }
 
     /// Alpha-tested triangles are left to the CPU: a masked dynamic soup whose alpha test
@@ -590,7 +709,7 @@ mod tests {
         dynamic.alpha = Some(std::sync::Arc::new(RejectAll));
         let frame = frame(closed_box(4.0), dynamic);
         let qs = queries(4, 5000, 4.0);
-        let (_, hits, undecided) = compare(vis.depth(), &frame, &qs);
+        let (_, hits, undecided, _) = compare(vis.depth(), &frame, &qs);
         assert_eq!(hits, qs.len());
         assert!(undecided > 500, "masked triangles in front: {undecided}");
     }

@@ -323,9 +323,14 @@ impl Visibility for GpuVisibility {
             }
         }
         encoder.copy_buffer_to_buffer(&b_flags, 0, &b_read, 0, out_bytes);
-        let words_read: Vec<u32> =
-            super::depth_gpu::submit_and_read(&self.device, &self.queue, encoder, &b_read)
-                .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
+        let words_read: Vec<u32> = super::depth_gpu::submit_and_map(
+            &self.device,
+            &self.queue,
+            encoder,
+            &b_read,
+            <[u32]>::to_vec,
+        )
+        .map_err(|e| self.failed(format!("reading flags back: {e}")))?;
         let bits = words_read
             .chunks(words)
             .map(|w| {
