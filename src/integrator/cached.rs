@@ -17,6 +17,7 @@ use std::f32::consts::{FRAC_1_PI, PI};
 use std::time::Instant;
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 use super::anchors::AnchorStats;
 use super::bucket::{BucketParams, BucketPlan};
@@ -493,13 +494,29 @@ impl BandPlans {
         band
     }
 
-    /// Every plan's depth queries, in order.
+    /// Every plan's depth queries, in order: each plan fills its own range, in parallel.
     fn queries(&self) -> Vec<DepthQuery> {
-        self.plans
-            .iter()
-            .filter_map(|(p, _)| p.as_ref())
-            .flat_map(BucketPlan::queries)
-            .collect()
+        let total = self.plans.last().map_or(0, |(_, r)| r.end);
+        let blank = DepthQuery {
+            origin: Vec3::ZERO,
+            dir: Vec3::ZERO,
+        };
+        let mut out = vec![blank; total];
+        let mut rest = out.as_mut_slice();
+        let mut parts = Vec::with_capacity(self.plans.len());
+        for (plan, range) in &self.plans {
+            let (part, tail) = std::mem::take(&mut rest).split_at_mut(range.len());
+            parts.push((plan, part));
+            rest = tail;
+        }
+        parts.into_par_iter().for_each(|(plan, part)| {
+            if let Some(plan) = plan {
+                for (q, p) in part.iter_mut().zip(plan.queries()) {
+                    *q = p;
+                }
+            }
+        });
+        out
     }
 
     /// The plans of pixel `index` (empty outside the band).
