@@ -263,12 +263,11 @@ impl ShearedRay {
     }
 }
 
-/// The closure the traversals call for candidate triangle `i` of `g`: its distance, or
-/// infinity when the ray misses it or passes through a cut-out (glTF alpha `MASK`) part of it.
+/// The closure the traversals call for candidate triangle `i` of `g`: its distance within
+/// `(0, tmax]`, or infinity when the ray misses it or passes through a cut-out (glTF alpha
+/// `MASK`) part of it. The GPU's depth maps call it too, for the triangles they leave to the
+/// CPU's f64 test.
 #[inline]
-/// The distance along `sr` to triangle `i` of `g` within `(0, tmax]`, alpha test included,
-/// or infinity: what every traversal here tests a triangle with (and what the GPU's depth
-/// maps leave to the CPU for the triangles they cannot decide in f32).
 pub(crate) fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
     let tri = &g.triangles[i];
     // Opaque triangles: one flag read, no alpha look-up.
