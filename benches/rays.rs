@@ -1,0 +1,185 @@
+//! Ray-tracing throughput on a job's scene, on one thread: final-gather rays (1 800 a point,
+//! in the cosine-distributed strata a cache record shoots) from the camera's first hits on a
+//! 40 × 24 grid of the job's first frame, traced to their closest hit, then the same rays
+//! cut to a tenth of the scene's radius and traced as shadow rays. For each of obvhs's
+//! static-BVH presets, the closest hits are traced twice over the same BVH: through obvhs's
+//! own `Bvh2::ray_traverse` (anchorage's traversal before `accel::pairs`, the watertight test
+//! and the alpha test as `Accel::closest` runs them) and through `Accel::closest`. A digest
+//! of every hit (triangle and distance) shows which agree; where the two differ, the bench
+//! counts the ties (the same distance, `Accel::closest` keeping the lower triangle index).
+//!
+//! `cargo bench --bench rays -- benches/sponza/job.json`
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use anchorage::accel::{Accel, ShearedRay, StaticBvh, canonical};
+use anchorage::cache::CacheParams;
+use anchorage::cache::gather::StratumRays;
+use anchorage::geom::{Geometry, Motion};
+use anchorage::scene::FrameScene;
+use glam::Vec3;
+use obvhs::BvhBuildParams;
+use obvhs::bvh2::Bvh2;
+use obvhs::ray::{Ray, RayHit};
+
+/// The closest hit through obvhs's traversal of one set: (distance, triangle).
+fn obvhs_set(bvh: &Bvh2, g: &Geometry, o: Vec3, d: Vec3, tmax: f32) -> Option<(f32, u32)> {
+    let sr = ShearedRay::new(o, d);
+    let mut hit = RayHit::none();
+    let found = bvh.ray_traverse(
+        Ray::new(o.into(), d.into(), 0.0, tmax),
+        &mut hit,
+        |r, id| {
+            let i = bvh.primitive_indices[id] as usize;
+            if !g.shading[i].masked {
+                return sr.intersect(&g.triangles[i], r.tmax);
+            }
+            match sr.intersect_barycentric(&g.triangles[i], r.tmax) {
+                (t, b) if t.is_finite() && g.alpha_passes(i, b) => t,
+                _ => f32::INFINITY,
+            }
+        },
+    );
+    found.then(|| (hit.t, bvh.primitive_indices[hit.primitive_id as usize]))
+}
+
+/// `Accel::closest` as it was: the static set, then the dynamic one up to the static hit.
+fn obvhs_closest(fs: &FrameScene, o: Vec3, d: Vec3) -> Option<(f32, Motion, u32)> {
+    let d = canonical(d);
+    let mut best = None;
+    if let Some(bvh) = fs.accel.statics().bvh2() {
+        best = obvhs_set(bvh, &fs.static_geometry, o, d, f32::INFINITY)
+            .map(|(t, i)| (t, Motion::Static, i));
+    }
+    if let Some(bvh) = fs.accel.dynamic_bvh2() {
+        let tmax = best.map_or(f32::INFINITY, |h| h.0);
+        if let Some((t, i)) = obvhs_set(bvh, &fs.dynamic_geometry, o, d, tmax) {
+            best = Some((t, Motion::Dynamic, i));
+        }
+    }
+    best
+}
+
+fn digest(h: Option<(f32, Motion, u32)>, acc: u64) -> u64 {
+    let v = h.map_or(0, |(t, m, i)| {
+        (u64::from(t.to_bits()) << 32 | u64::from(i)) ^ (m == Motion::Dynamic) as u64
+    });
+    acc.wrapping_mul(0x100_0000_01b3).wrapping_add(v)
+}
+
+fn rate(n: usize, seconds: f64) -> f64 {
+    n as f64 / seconds / 1e6
+}
+
+fn main() {
+    let path = std::env::args()
+        .skip(1)
+        .find(|a| !a.starts_with("--"))
+        .unwrap_or_else(|| "benches/sponza/job.json".into());
+    let job = anchorage::job::Job::load(std::path::Path::new(&path), &Default::default())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let scene = job.load_scene().unwrap_or_else(|e| panic!("{e}"));
+    let base = scene.statics();
+    let aspect = job.width as f32 / job.height as f32;
+    let time = job.time_of(job.frames.start);
+    let cp = CacheParams {
+        strata: [30, 60],
+        ..CacheParams::default()
+    };
+    println!(
+        "{path}: {} static triangles, 1 thread",
+        base.geometry.triangles.len()
+    );
+    let presets = [
+        ("medium_build", BvhBuildParams::medium_build()),
+        ("slow_build", BvhBuildParams::slow_build()),
+        ("very_slow_build", BvhBuildParams::very_slow_build()),
+    ];
+    for (name, params) in presets {
+        let start = Instant::now();
+        let bvh = StaticBvh::build_with(&base.geometry, params);
+        let build = start.elapsed().as_secs_f64();
+        let statics = anchorage::scene::StaticSet {
+            bvh: Arc::new(bvh),
+            ..base.clone()
+        };
+        let (fs, _) = scene.evaluate(time, aspect, &statics);
+        let mut rays = Vec::new();
+        for y in 0..24 {
+            for x in 0..40 {
+                let (px, py) = ((x as f32 + 0.5) / 40.0, (y as f32 + 0.5) / 24.0);
+                let Some(sp) = anchorage::interaction::trace_camera(&fs, px, py).1 else {
+                    continue;
+                };
+                let strata = StratumRays::new(&sp, (y * 40 + x) as u32, &cp);
+                let o = sp.spawn();
+                rays.extend(
+                    (0..1800)
+                        .map(|s| strata.dir(s))
+                        .filter(|d| d.dot(sp.ng) > 0.0)
+                        .map(|d| (o, d)),
+                );
+            }
+        }
+        let short = 0.1 * fs.static_radius();
+        let (mut ours, mut theirs, mut occluded) = (f64::MAX, f64::MAX, f64::MAX);
+        let (mut d_ours, mut d_theirs, mut blocked) = (0, 0, 0);
+        let (mut differ, mut ties) = (0, 0);
+        for _ in 0..3 {
+            let start = Instant::now();
+            let a: Vec<_> = rays
+                .iter()
+                .map(|&(o, d)| obvhs_closest(&fs, o, d))
+                .collect();
+            theirs = theirs.min(start.elapsed().as_secs_f64());
+            let start = Instant::now();
+            let b: Vec<_> = rays
+                .iter()
+                .map(|&(o, d)| {
+                    Accel::closest(
+                        &fs.accel,
+                        &fs.static_geometry,
+                        &fs.dynamic_geometry,
+                        o,
+                        d,
+                        f32::INFINITY,
+                    )
+                    .map(|h| (h.t, h.motion, h.triangle))
+                })
+                .collect();
+            ours = ours.min(start.elapsed().as_secs_f64());
+            let start = Instant::now();
+            blocked = rays
+                .iter()
+                .filter(|&&(o, d)| {
+                    fs.accel
+                        .occluded(&fs.static_geometry, &fs.dynamic_geometry, o, d, short)
+                })
+                .count();
+            occluded = occluded.min(start.elapsed().as_secs_f64());
+            d_theirs = a.iter().fold(0, |acc, &h| digest(h, acc));
+            d_ours = b.iter().fold(0, |acc, &h| digest(h, acc));
+            differ = a.iter().zip(&b).filter(|(a, b)| a != b).count();
+            // Hits at the same distance where ours is the triangle of lower index.
+            ties = a
+                .iter()
+                .zip(&b)
+                .filter(|(a, b)| match (a, b) {
+                    (Some(a), Some(b)) => a != b && a.0 == b.0 && a.1 == b.1 && b.2 < a.2,
+                    _ => false,
+                })
+                .count();
+        }
+        println!(
+            "{name:<16} build {build:.2} s | {} gather rays, closest hit: obvhs's traversal \
+             {:.3} M/s (digest {d_theirs:016x}), Accel::closest {:.3} M/s (digest \
+             {d_ours:016x}), {differ} hits differ, {ties} of them ties won by the lower index | shadow rays of {short:.3}: {:.3} M/s, \
+             {blocked} blocked",
+            rays.len(),
+            rate(rays.len(), theirs),
+            rate(rays.len(), ours),
+            rate(rays.len(), occluded),
+        );
+    }
+}
