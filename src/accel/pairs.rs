@@ -124,8 +124,11 @@ impl PairTree {
         }
     }
 
-    pub(super) fn bytes(&self) -> usize {
-        self.pairs.len() * size_of::<Pair>()
+    /// Bytes on the heap: `bvh`'s (the tree this one was laid out from) and this copy's.
+    pub(super) fn bytes(&self, bvh: Option<&Bvh2>) -> usize {
+        bvh.map_or(0, |b| {
+            b.nodes.len() * size_of_val(&b.nodes[0]) + b.primitive_indices.len() * 4
+        }) + self.pairs.len() * size_of::<Pair>()
             + self.triangles.len() * (size_of::<Triangle>() + 4)
             + self.masked.len() * 8
     }
@@ -223,21 +226,21 @@ impl PairTree {
             if a.0 > b.0 {
                 std::mem::swap(&mut a, &mut b);
             }
-            let go_a = if a.0 < tmax && a.1.count > 0 {
-                if !leaf(a.1, &mut tmax) {
-                    return;
+            // Whether to descend into a child: a leaf hit is tested now (`None`: stop).
+            let mut open = |(entry, link): (f32, Link), tmax: &mut f32| {
+                if !(entry < *tmax) {
+                    Some(false)
+                } else if link.count == 0 {
+                    Some(true)
+                } else {
+                    leaf(link, tmax).then_some(false)
                 }
-                false
-            } else {
-                a.0 < tmax
             };
-            let go_b = if b.0 < tmax && b.1.count > 0 {
-                if !leaf(b.1, &mut tmax) {
-                    return;
-                }
-                false
-            } else {
-                b.0 < tmax
+            let Some(go_a) = open(a, &mut tmax) else {
+                return;
+            };
+            let Some(go_b) = open(b, &mut tmax) else {
+                return;
             };
             current = match (go_a, go_b) {
                 (true, true) => {
