@@ -13,7 +13,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use anchorage::accel::{Accel, ShearedRay, StaticBvh, canonical};
+use anchorage::accel::{Accel, ShearedRay, StaticBvh, canonical, hit_distance};
 use anchorage::cache::CacheParams;
 use anchorage::cache::gather::StratumRays;
 use anchorage::geom::{Geometry, Motion};
@@ -30,16 +30,7 @@ fn obvhs_set(bvh: &Bvh2, g: &Geometry, o: Vec3, d: Vec3, tmax: f32) -> Option<(f
     let found = bvh.ray_traverse(
         Ray::new(o.into(), d.into(), 0.0, tmax),
         &mut hit,
-        |r, id| {
-            let i = bvh.primitive_indices[id] as usize;
-            if !g.shading[i].masked {
-                return sr.intersect(&g.triangles[i], r.tmax);
-            }
-            match sr.intersect_barycentric(&g.triangles[i], r.tmax) {
-                (t, b) if t.is_finite() && g.alpha_passes(i, b) => t,
-                _ => f32::INFINITY,
-            }
-        },
+        |r, id| hit_distance(&sr, g, bvh.primitive_indices[id] as usize, r.tmax),
     );
     found.then(|| (hit.t, bvh.primitive_indices[hit.primitive_id as usize]))
 }

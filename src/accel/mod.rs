@@ -1,12 +1,13 @@
 //! Ray tracing against two BVH2s built with obvhs (PLOC with reinsertion): one over the
 //! static geometry, built once per render with obvhs's `slow_build` preset (Sponza's 188 k
 //! triangles: 0.21 s on two cores against 0.08 s for `medium_build`, for gather rays 4–5 %
-//! faster, `cargo bench --bench rays`), and one over the dynamic geometry, rebuilt every frame with the fastest
-//! preset. They are traversed by our own loop over a copy laid out for it (`pairs.rs`); a
-//! hit does not depend on the BVH's shape. (obvhs 0.4's compressed wide BVH traverses faster
-//! but misses rays in millimetre-sized scenes — a closed 2 mm room lost 3 % of its photons
-//! through it — so it is not used.) Every hit says which set it came from: the anchor method
-//! (paper §3.2, Pseudocode 2) re-traces only strata whose rays meet dynamic geometry.
+//! faster, `cargo bench --bench rays`), and one over the dynamic geometry, rebuilt every
+//! frame with the fastest preset. They are traversed by our own loop over a copy laid out
+//! for it (`pairs.rs`); a hit does not depend on the BVH's shape. (obvhs 0.4's compressed
+//! wide BVH traverses faster but misses rays in millimetre-sized scenes — a closed 2 mm room
+//! lost 3 % of its photons through it — so it is not used.) Every hit says which set it came
+//! from: the anchor method (paper §3.2, Pseudocode 2) re-traces only strata whose rays meet
+//! dynamic geometry.
 //!
 //! Ray offsets come from floating-point error bounds, as in pbrt-v4 (Pharr, Jakob &
 //! Humphreys, "Physically Based Rendering", 4th ed., §6.8): a hit point is interpolated from
@@ -248,6 +249,25 @@ impl ShearedRay {
         }
     }
 
+    /// [`ShearedRay::intersect`], where a `masked` triangle also needs `opaque_at` of the
+    /// hit's barycentrics to stop the ray; opaque ones skip the alpha look-up.
+    #[inline]
+    pub(crate) fn cut_distance(
+        &self,
+        tri: &Triangle,
+        masked: bool,
+        tmax: f32,
+        opaque_at: impl FnOnce(Vec2) -> bool,
+    ) -> f32 {
+        if !masked {
+            return self.intersect(tri, tmax);
+        }
+        match self.intersect_barycentric(tri, tmax) {
+            (t, b) if t.is_finite() && opaque_at(b) => t,
+            _ => f32::INFINITY,
+        }
+    }
+
     /// Where the ray's line meets the plane of `tri`, solved in f64 from the exact f32
     /// inputs, if that `t` is positive beyond its own (f64) error bound; `None` otherwise
     /// (behind the origin, at it within rounding, or a ray in the plane).
@@ -277,21 +297,15 @@ impl ShearedRay {
     }
 }
 
-/// The closure the traversals call for candidate triangle `i` of `g`: its distance within
-/// `(0, tmax]`, or infinity when the ray misses it or passes through a cut-out (glTF alpha
-/// `MASK`) part of it. The GPU's depth maps call it too, for the triangles they leave to the
-/// CPU's f64 test.
+/// Triangle `i` of `g`'s distance along `sr` within `(0, tmax]`, or infinity when the ray
+/// misses it or passes through a cut-out (glTF alpha `MASK`) part of it: what the traversals
+/// ask of every candidate triangle (they read a copy of the triangle and its flag), and what
+/// the GPU's depth maps ask of the triangles they leave to the CPU's f64 test.
 #[inline]
-pub(crate) fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
-    let tri = &g.triangles[i];
-    // Opaque triangles: one flag read, no alpha look-up.
-    if !g.shading[i].masked {
-        return sr.intersect(tri, tmax);
-    }
-    match sr.intersect_barycentric(tri, tmax) {
-        (t, b) if t.is_finite() && g.alpha_passes(i, b) => t,
-        _ => f32::INFINITY,
-    }
+pub fn hit_distance(sr: &ShearedRay, g: &Geometry, i: usize, tmax: f32) -> f32 {
+    sr.cut_distance(&g.triangles[i], g.shading[i].masked, tmax, |b| {
+        g.alpha_passes(i, b)
+    })
 }
 
 /// A ray–surface hit.
@@ -370,7 +384,11 @@ impl Accel {
                 triangle,
             });
         }
-        let ray = Ray::new(origin.into(), dir.into(), 0.0, best.map_or(tmax, |h| h.t));
+        // The dynamic set only up to the static hit (a tie keeps the static one).
+        let ray = Ray {
+            tmax: best.map_or(tmax, |h| h.t),
+            ..ray
+        };
         if let Some((t, triangle)) = self.dynamic_tree.closest(d, &ray, &sr) {
             best = Some(Hit {
                 t,

@@ -133,17 +133,13 @@ impl PairTree {
             + self.masked.len() * 8
     }
 
-    /// [`super::hit_distance`] for the triangle at `id` in leaf order, with the same answer.
+    /// [`super::hit_distance`] for the triangle at `id` in leaf order, from the copy.
     #[inline]
     fn distance(&self, sr: &ShearedRay, g: &Geometry, id: usize, tmax: f32) -> f32 {
-        let tri = &self.triangles[id];
-        if self.masked[id / 64] & (1 << (id % 64)) == 0 {
-            return sr.intersect(tri, tmax);
-        }
-        match sr.intersect_barycentric(tri, tmax) {
-            (t, b) if t.is_finite() && g.alpha_passes(self.order[id] as usize, b) => t,
-            _ => f32::INFINITY,
-        }
+        let masked = self.masked[id / 64] & (1 << (id % 64)) != 0;
+        sr.cut_distance(&self.triangles[id], masked, tmax, |b| {
+            g.alpha_passes(self.order[id] as usize, b)
+        })
     }
 
     /// The nearest hit within `ray.tmax` (of `g`, the geometry the tree was built over):
@@ -155,14 +151,14 @@ impl PairTree {
             self.traverse(&mut stack, ray, |leaf, tmax| {
                 for id in leaf.index..leaf.index + leaf.count {
                     let t = self.distance(sr, g, id as usize, *tmax);
-                    let tri = self.order[id as usize];
+                    // (The geometry's index is read only for a hit.)
                     let nearer = match best {
                         None => t < *tmax,
-                        Some((b, bt)) => t < b || (t == b && tri < bt),
+                        Some((b, bt)) => t < b || (t == b && self.order[id as usize] < bt),
                     };
                     if nearer {
                         *tmax = t;
-                        best = Some((t, tri));
+                        best = Some((t, self.order[id as usize]));
                     }
                 }
                 true

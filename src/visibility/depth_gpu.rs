@@ -12,7 +12,7 @@
 //! invocation per query. A triangle the CPU would decide in f64 — above all the surface a
 //! query starts on, whose `t` is zero within rounding — does not send its query back whole:
 //! the shader names it (two per query at most), and the CPU tests just that triangle with its
-//! own test (`accel::hit_distance`) and keeps the nearer answer. Queries the shader leaves
+//! own test ([`crate::accel::hit_distance`]) and keeps the nearer answer. Queries the shader leaves
 //! undecided (more such triangles, an alpha-tested one in front, a stack overflow) are traced
 //! on the CPU. Packing the queries and reading the answers run in parallel, in order.
 
