@@ -25,8 +25,8 @@ const BYTES_PER_PHOTON: u64 = (36 + 24) * 6;
 /// Bytes per stratum of a cache record (`cache::record::Stratum`) with its anchor's share.
 const BYTES_PER_STRATUM: u64 = 6 + 4;
 /// Bytes per triangle: its vertices (48) and shading record (80), and its share of the BVH
-/// with the traversal's copy of it (`accel::pairs`: 97 a triangle on Sponza).
-const BYTES_PER_TRIANGLE: u64 = 48 + 80 + 100;
+/// with the traversal's copy of it (`accel::pairs`: 101 a triangle on Sponza).
+const BYTES_PER_TRIANGLE: u64 = 48 + 80 + 104;
 
 /// What a render is estimated to hold at its peak, by part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

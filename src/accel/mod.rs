@@ -729,6 +729,75 @@ mod tests {
         assert!(a.occluded(&opaque, &e, cut, -Vec3::Z, 10.0));
     }
 
+    /// The traversal's four-lane triangle test (`pairs`) finds what each triangle's own test
+    /// ([`hit_distance`]) finds: for every ray the same closest distance and triangle (the
+    /// lowest index on a tie), and the same answer for shadow rays. Rays aim at the vertices
+    /// and edge midpoints of integer grids, where edge functions come out exactly zero and
+    /// the test decides in f64, and at points scattered between; every third triangle is
+    /// alpha-masked, so that rays pass through the cut-outs of the front grid to the one
+    /// behind it.
+    #[test]
+    fn four_lane_test_agrees_with_each_triangles_own() {
+        let mut tris = Vec::new();
+        for (z0, slope) in [(-2.0f32, 0.0f32), (-3.0, -0.25)] {
+            let v = |x: f32, y: f32| Vec3::new(x, y, z0 + slope * x);
+            for y in 0..6 {
+                for x in 0..6 {
+                    let (x, y) = (x as f32, y as f32);
+                    tris.push(triangle(v(x, y), v(x + 1.0, y), v(x + 1.0, y + 1.0)));
+                    tris.push(triangle(v(x, y), v(x + 1.0, y + 1.0), v(x, y + 1.0)));
+                }
+            }
+        }
+        let mut g = geometry(&tris);
+        for (i, s) in g.shading.iter_mut().enumerate() {
+            s.masked = i % 3 == 0;
+        }
+        g.alpha = Some(Arc::new(HalfCut));
+        let e = Geometry::default();
+        let a = Accel::build(&g, &e);
+        let mut targets = Vec::new();
+        for y in 0..13 {
+            for x in 0..13 {
+                targets.push(Vec3::new(x as f32 * 0.5, y as f32 * 0.5, -2.0));
+            }
+        }
+        for i in 0..400u32 {
+            let h = crate::sampling::hash(&[i]);
+            let (u, v) = ((h & 0xffff) as f32 / 65536.0, (h >> 16) as f32 / 65536.0);
+            targets.push(Vec3::new(u * 8.0 - 1.0, v * 8.0 - 1.0, -2.0));
+        }
+        let origins = [
+            Vec3::new(3.0, 3.0, 1.0),
+            Vec3::new(0.5, 2.0, 0.0),
+            Vec3::new(6.0, 0.0, 2.0),
+            Vec3::new(-1.0, 4.0, -1.0),
+        ];
+        let (mut hits, mut on_edge) = (0, 0);
+        for o in origins {
+            for &target in &targets {
+                let dir = target - o;
+                let sr = ShearedRay::new(o, canonical(dir));
+                let own = (0..tris.len())
+                    .map(|i| (hit_distance(&sr, &g, i, f32::INFINITY), i as u32))
+                    .filter(|h| h.0 < f32::INFINITY)
+                    .min_by(|x, y| x.partial_cmp(y).unwrap());
+                let found = a.closest(&g, &e, o, dir, f32::INFINITY);
+                assert_eq!(found.map(|h| (h.t, h.triangle)), own, "{o} → {target}");
+                for tmax in [0.5, 1.0, 1.5] {
+                    let blocked = own.is_some_and(|h| h.0 < tmax);
+                    assert_eq!(a.occluded(&g, &e, o, dir, tmax), blocked, "{o} → {target}");
+                }
+                hits += usize::from(own.is_some());
+                on_edge += usize::from(target.fract() == Vec3::new(0.0, 0.0, 0.0));
+            }
+        }
+        assert!(
+            hits > 1000 && on_edge > 100,
+            "{hits} hits, {on_edge} rays at vertices"
+        );
+    }
+
     #[test]
     fn empty_sets_trace() {
         let e = Geometry::default();
