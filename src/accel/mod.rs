@@ -1,6 +1,6 @@
 //! Ray tracing against two BVH2s built with obvhs (PLOC with reinsertion): one over the
 //! static geometry, built once per render with obvhs's `slow_build` preset (Sponza's 188 k
-//! triangles: 0.21 s on two cores against 0.08 s for `medium_build`, for gather rays 4–5 %
+//! triangles: 0.21 s on two cores against 0.08 s for `medium_build`, for gather rays 4–6 %
 //! faster, `cargo bench --bench rays`), and one over the dynamic geometry, rebuilt every
 //! frame with the fastest preset. They are traversed by our own loop over a copy laid out
 //! for it (`pairs.rs`); a hit does not depend on the BVH's shape. (obvhs 0.4's compressed

@@ -1,15 +1,20 @@
 //! The traversal of a BVH2 that obvhs built, over a copy laid out for it: every pair of
 //! siblings in one 64-byte line, their two boxes stored axis by axis so that one SIMD step
-//! measures both, and every leaf's triangles side by side in leaf order, four to a block
-//! with each coordinate's four values in one SIMD lane set, with each one's alpha flag as a
-//! bit.
+//! measures both, and every leaf's triangles in blocks of four stored coordinate by
+//! coordinate, so that one set of SIMD steps tests four, with each one's alpha flag as a bit.
 //!
 //! A leaf's triangles are tested four at a time ([`block_test`]): the watertight test of
 //! `ShearedRay::intersect_barycentric` with the same f32 arithmetic lane by lane, so that
 //! each lane finds the distance the one-triangle test finds. The lanes that test would
 //! decide by another path (an edge function exactly zero or a distance within its error
 //! bound of zero, both redone in f64; a value that is not finite; an alpha-masked
-//! triangle) go to it one at a time.
+//! triangle) go to it one at a time. On Sponza's gather rays this traces 1.3× as many
+//! closest-hit rays a second as testing one triangle at a time, and shadow rays 1.2× as many
+//! (`cargo bench --bench rays`).
+//!
+//! A four-wide tree (obvhs's BVH2 collapsed, each node taking in the children of its largest
+//! interior children, the entered children sorted by entry distance) traced 17 % fewer
+//! closest-hit rays a second than these pairs and 40 % fewer shadow rays, and so is not used.
 //!
 //! Written here rather than calling obvhs's `Bvh2::ray_traverse`: its nodes are 32 bytes
 //! each, so that half the sibling pairs straddle two cache lines; it tests the two boxes one
@@ -35,7 +40,7 @@ use obvhs::triangle::Triangle;
 use super::{ShearedRay, gamma};
 use crate::geom::Geometry;
 
-/// A node's link: a leaf's triangles `index..index + count` in leaf order (`count` > 0),
+/// A node's link: a leaf's triangles in slots `index..index + count` (`count` > 0),
 /// or the pair that holds an interior node's two children (`count` 0).
 #[derive(Debug, Clone, Copy, Default)]
 struct Link {
