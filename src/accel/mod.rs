@@ -221,19 +221,7 @@ impl ShearedRay {
         if !(t <= tmax) {
             return (f32::INFINITY, Vec2::ZERO);
         }
-        // δt, pbrt-v4's bound on the error of `t` (§6.8.7), with every product of three
-        // coordinates divided by det first (same range argument), and γ(5) for the two extra
-        // roundings of the divisions.
-        let max_z = p0.2.abs().max(p1.2.abs()).max(p2.2.abs());
-        let max_x = p0.0.abs().max(p1.0.abs()).max(p2.0.abs());
-        let max_y = p0.1.abs().max(p1.1.abs()).max(p2.1.abs());
-        let delta_z = gamma(3) * max_z;
-        let delta_x = gamma(5) * (max_x + max_z);
-        let delta_y = gamma(5) * (max_y + max_z);
-        let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
-        let max_b = b0.abs().max(b1.abs()).max(b2.abs());
-        let delta_t =
-            3.0 * (gamma(5) * max_b * max_z + delta_e * inv_det.abs() * max_z + delta_z * max_b);
+        let delta_t = t_error([p0, p1, p2], [b0, b1, b2], inv_det);
         if t > delta_t {
             return (t, Vec2::new(b1, b2));
         }
@@ -295,6 +283,53 @@ impl ShearedRay {
         let err = gamma64(16) * (n_abs.dot(w.abs()) + t.abs() * n_abs.dot(d.abs())) / den.abs();
         (t > err && t.is_finite()).then_some(t)
     }
+}
+
+/// What [`t_error`] computes with: one triangle's values (`f32`) or four triangles' in SIMD
+/// lanes (`Vec4`, the traversal's block test), by the same operations in the same order.
+pub(crate) trait Lanes:
+    Copy
+    + std::ops::Add<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Mul<f32, Output = Self>
+{
+    fn abs(self) -> Self;
+    fn max(self, other: Self) -> Self;
+}
+
+impl Lanes for f32 {
+    fn abs(self) -> Self {
+        f32::abs(self)
+    }
+    fn max(self, other: Self) -> Self {
+        f32::max(self, other)
+    }
+}
+
+impl Lanes for glam::Vec4 {
+    fn abs(self) -> Self {
+        glam::Vec4::abs(self)
+    }
+    fn max(self, other: Self) -> Self {
+        glam::Vec4::max(self, other)
+    }
+}
+
+/// δt, pbrt-v4's bound on the error of the watertight test's `t` (§6.8.7), from the sheared
+/// vertices `p` (x, y, z), the barycentrics `b` and 1/det: every product of three coordinates
+/// divided by det first (the same range argument as `t`'s), and γ(5) for the two extra
+/// roundings of the divisions. (`f32::max` and SIMD `max` agree where no value is NaN.)
+#[inline(always)]
+pub(crate) fn t_error<V: Lanes>(p: [(V, V, V); 3], b: [V; 3], inv_det: V) -> V {
+    let max_z = p[0].2.abs().max(p[1].2.abs()).max(p[2].2.abs());
+    let max_x = p[0].0.abs().max(p[1].0.abs()).max(p[2].0.abs());
+    let max_y = p[0].1.abs().max(p[1].1.abs()).max(p[2].1.abs());
+    let delta_z = max_z * gamma(3);
+    let delta_x = (max_x + max_z) * gamma(5);
+    let delta_y = (max_y + max_z) * gamma(5);
+    let delta_e = (max_x * gamma(2) * max_y + delta_y * max_x + delta_x * max_y) * 2.0;
+    let max_b = b[0].abs().max(b[1].abs()).max(b[2].abs());
+    (max_b * gamma(5) * max_z + delta_e * inv_det.abs() * max_z + delta_z * max_b) * 3.0
 }
 
 /// Triangle `i` of `g`'s distance along `sr` within `(0, tmax]`, or infinity when the ray

@@ -37,7 +37,7 @@ use obvhs::faststack::FastStack;
 use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 
-use super::{ShearedRay, gamma};
+use super::{ShearedRay, t_error};
 use crate::geom::Geometry;
 
 /// A node's link: a leaf's triangles in slots `index..index + count` (`count` > 0),
@@ -379,16 +379,7 @@ fn block_test(sr: &ShearedRay, q: &Quad, tmax: f32, masked: u32) -> BlockHits {
     let inv_det = Vec4::ONE / det;
     let (b0, b1, b2) = (e0 * inv_det, e1 * inv_det, e2 * inv_det);
     let t = b0 * p0.2 + b1 * p1.2 + b2 * p2.2;
-    let max_z = p0.2.abs().max(p1.2.abs()).max(p2.2.abs());
-    let max_x = p0.0.abs().max(p1.0.abs()).max(p2.0.abs());
-    let max_y = p0.1.abs().max(p1.1.abs()).max(p2.1.abs());
-    let delta_z = gamma(3) * max_z;
-    let delta_x = gamma(5) * (max_x + max_z);
-    let delta_y = gamma(5) * (max_y + max_z);
-    let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
-    let max_b = b0.abs().max(b1.abs()).max(b2.abs());
-    let delta_t =
-        3.0 * (gamma(5) * max_b * max_z + delta_e * inv_det.abs() * max_z + delta_z * max_b);
+    let delta_t = t_error([p0, p1, p2], [b0, b1, b2], inv_det);
     // Lanes whose values are all finite: there `max` and the comparisons agree with the
     // scalar test's; the others go to it.
     let finite = (t.is_finite_mask() & delta_t.is_finite_mask()).bitmask();
