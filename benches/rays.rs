@@ -4,9 +4,11 @@
 //! cut to a tenth of the scene's radius and traced as shadow rays. For each of obvhs's
 //! static-BVH presets, the closest hits are traced twice over the same BVH: through obvhs's
 //! own `Bvh2::ray_traverse` (anchorage's traversal before `accel::pairs`, the watertight test
-//! and the alpha test as `Accel::closest` runs them) and through `Accel::closest`. A digest
-//! of every hit (triangle and distance) shows which agree; where the two differ, the bench
-//! counts the ties (the same distance, `Accel::closest` keeping the lower triangle index).
+//! and the alpha test as `Accel::closest` runs them) and through `Accel::closest`, then a
+//! third time four at a time, as the gather traces them: `Accel::closest4` over 2 × 2
+//! neighbouring strata of a point. A digest of every hit (triangle and distance) shows which
+//! agree; where the first two differ, the bench counts the ties (the same distance,
+//! `Accel::closest` keeping the lower triangle index).
 //!
 //! `cargo bench --bench rays -- benches/sponza/job.json`
 
@@ -97,6 +99,9 @@ fn main() {
         };
         let (fs, _) = scene.evaluate(time, aspect, &statics);
         let mut rays = Vec::new();
+        // Each point's rays as `Accel::closest4` takes them in the gather: 2 × 2 strata,
+        // each lane the ray's index in `rays` (`None`: below the surface or past the grid).
+        let mut packets: Vec<(Vec3, [Option<usize>; 4])> = Vec::new();
         for y in 0..24 {
             for x in 0..40 {
                 let (px, py) = ((x as f32 + 0.5) / 40.0, (y as f32 + 0.5) / 24.0);
@@ -105,17 +110,33 @@ fn main() {
                 };
                 let strata = StratumRays::new(&sp, (y * 40 + x) as u32, &cp);
                 let o = sp.spawn();
-                rays.extend(
-                    (0..1800)
-                        .map(|s| strata.dir(s))
-                        .filter(|d| d.dot(sp.ng) > 0.0)
-                        .map(|d| (o, d)),
-                );
+                let first = rays.len();
+                let mut index = [None; 1800];
+                for s in 0..1800 {
+                    let d = strata.dir(s);
+                    if d.dot(sp.ng) > 0.0 {
+                        index[s as usize] = Some(rays.len());
+                        rays.push((o, d));
+                    }
+                }
+                let [m, n] = cp.strata;
+                for j in (0..m).step_by(2) {
+                    for k in (0..n).step_by(2) {
+                        let lane = |dj: u32, dk: u32| {
+                            (j + dj < m && k + dk < n)
+                                .then(|| index[((j + dj) * n + k + dk) as usize])
+                                .flatten()
+                        };
+                        packets.push((o, [lane(0, 0), lane(0, 1), lane(1, 0), lane(1, 1)]));
+                    }
+                }
+                debug_assert!(rays[first..].iter().all(|r| r.0 == o));
             }
         }
         let short = 0.1 * fs.static_radius();
         let (mut ours, mut theirs, mut occluded) = (f64::MAX, f64::MAX, f64::MAX);
         let (mut d_ours, mut d_theirs, mut blocked) = (0, 0, 0);
+        let (mut fours, mut d_fours) = (f64::MAX, 0);
         let (mut differ, mut ties) = (0, 0);
         for _ in 0..3 {
             let start = Instant::now();
@@ -141,6 +162,21 @@ fn main() {
                 .collect();
             ours = ours.min(start.elapsed().as_secs_f64());
             let start = Instant::now();
+            let mut c = vec![None; rays.len()];
+            for (o, lanes) in &packets {
+                let dirs = lanes.map(|l| l.map(|i| rays[i].1));
+                let hits = fs
+                    .accel
+                    .closest4(&fs.static_geometry, &fs.dynamic_geometry, *o, dirs);
+                for (l, h) in lanes.iter().zip(hits) {
+                    if let Some(i) = l {
+                        c[*i] = h.map(|h| (h.t, h.motion, h.triangle));
+                    }
+                }
+            }
+            fours = fours.min(start.elapsed().as_secs_f64());
+            d_fours = c.iter().fold(0, |acc, &h| digest(h, acc));
+            let start = Instant::now();
             blocked = rays
                 .iter()
                 .filter(|&&(o, d)| {
@@ -165,11 +201,13 @@ fn main() {
         println!(
             "{name:<16} build {build:.2} s | {} gather rays, closest hit: obvhs's traversal \
              {:.3} M/s (digest {d_theirs:016x}), Accel::closest {:.3} M/s (digest \
-             {d_ours:016x}), {differ} hits differ, {ties} of them ties won by the lower index | shadow rays of {short:.3}: {:.3} M/s, \
-             {blocked} blocked",
+             {d_ours:016x}), {differ} hits differ, {ties} of them ties won by the lower index; \
+             Accel::closest4 over 2×2 strata {:.3} M/s (digest {d_fours:016x}) | shadow rays of \
+             {short:.3}: {:.3} M/s, {blocked} blocked",
             rays.len(),
             rate(rays.len(), theirs),
             rate(rays.len(), ours),
+            rate(rays.len(), fours),
             rate(rays.len(), occluded),
         );
     }

@@ -399,6 +399,48 @@ impl Accel {
         self.dynamic_tree.bytes(self.dynamic.as_ref())
     }
 
+    /// [`Accel::closest`] (with no limit on `t`) for four rays from `origin`, traced together
+    /// through the static set (`PairTree::closest4`); a `None` direction is not traced. The
+    /// hits are those `closest` finds for each ray alone.
+    pub fn closest4(
+        &self,
+        s: &Geometry,
+        d: &Geometry,
+        origin: Vec3,
+        dirs: [Option<Vec3>; 4],
+    ) -> [Option<Hit>; 4] {
+        let active = (0..4)
+            .filter(|&i| dirs[i].is_some())
+            .fold(0u32, |m, i| m | 1 << i);
+        let dirs = dirs.map(|d| canonical(d.unwrap_or(Vec3::Z)));
+        let rays = dirs.map(|d| Ray::new(origin.into(), d.into(), 0.0, f32::INFINITY));
+        let srs = dirs.map(|d| ShearedRay::new(origin, d));
+        let statics = self.statics.tree.closest4(s, &rays, &srs, active);
+        std::array::from_fn(|i| {
+            if active & (1 << i) == 0 {
+                return None;
+            }
+            let best = statics[i].map(|(t, triangle)| Hit {
+                t,
+                motion: Motion::Static,
+                triangle,
+            });
+            // The dynamic set only up to the static hit, as in `closest`.
+            let ray = Ray {
+                tmax: best.map_or(f32::INFINITY, |h| h.t),
+                ..rays[i]
+            };
+            match self.dynamic_tree.closest(d, &ray, &srs[i]) {
+                Some((t, triangle)) => Some(Hit {
+                    t,
+                    motion: Motion::Dynamic,
+                    triangle,
+                }),
+                None => best,
+            }
+        })
+    }
+
     /// Closest hit along `origin + t·dir` for `t` in `(0, tmax)`.
     pub fn closest(
         &self,
@@ -770,7 +812,8 @@ mod tests {
     /// and edge midpoints of integer grids, where edge functions come out exactly zero and
     /// the test decides in f64, and at points scattered between; every third triangle is
     /// alpha-masked, so that rays pass through the cut-outs of the front grid to the one
-    /// behind it.
+    /// behind it. Traced four at a time ([`Accel::closest4`]), each ray finds what it finds
+    /// alone.
     #[test]
     fn four_lane_test_agrees_with_each_triangles_own() {
         let mut tris = Vec::new();
@@ -791,6 +834,13 @@ mod tests {
         g.alpha = Some(Arc::new(HalfCut));
         let e = Geometry::default();
         let a = Accel::build(&g, &e);
+        let half = |range: std::ops::Range<usize>| Geometry {
+            triangles: g.triangles[range.clone()].to_vec(),
+            shading: g.shading[range].to_vec(),
+            ..g.clone()
+        };
+        let (front, back) = (half(0..72), half(72..144));
+        let split = Accel::build(&front, &back);
         let mut targets = Vec::new();
         for y in 0..13 {
             for x in 0..13 {
@@ -825,6 +875,22 @@ mod tests {
                 }
                 hits += usize::from(own.is_some());
                 on_edge += usize::from(target.fract() == Vec3::new(0.0, 0.0, 0.0));
+            }
+            // Four rays at a time, as the gather traces them (a lane in five left out).
+            for (n, four) in targets.chunks(4).enumerate() {
+                let dirs: [Option<Vec3>; 4] = std::array::from_fn(|i| {
+                    four.get(i)
+                        .filter(|_| (4 * n + i) % 5 != 3)
+                        .map(|&target| target - o)
+                });
+                // Both grids static, and the front one static with the back one dynamic.
+                for (a, s, d) in [(&a, &g, &e), (&split, &front, &back)] {
+                    let found = a.closest4(s, d, o, dirs);
+                    for (dir, hit) in dirs.into_iter().zip(found) {
+                        let alone = dir.and_then(|dir| a.closest(s, d, o, dir, f32::INFINITY));
+                        assert_eq!(hit, alone, "{o} along {dir:?}");
+                    }
+                }
             }
         }
         assert!(

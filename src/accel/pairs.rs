@@ -236,18 +236,129 @@ impl PairTree {
         obvhs::fast_stack!(u32, (96, 192), self.max_depth, stack, {
             self.traverse(&mut stack, ray, |leaf, tmax| {
                 self.leaf_hits(sr, g, leaf, tmax, |id, t, tmax| {
-                    // (The geometry's index is read only for a hit.)
-                    let nearer = match best {
-                        None => t < *tmax,
-                        Some((b, bt)) => t < b || (t == b && self.order[id] < bt),
-                    };
-                    if nearer {
-                        *tmax = t;
-                        best = Some((t, self.order[id]));
-                    }
+                    self.keep_nearer(&mut best, id, t, tmax);
                     true
                 })
             })
+        });
+        best
+    }
+
+    /// Keeps the hit of slot `id` at `t` in `best` (the hit so far: distance, triangle index
+    /// in the geometry) if it is nearer, or as near with a lower index, and shortens the ray.
+    #[inline(always)]
+    fn keep_nearer(&self, best: &mut Option<(f32, u32)>, id: usize, t: f32, tmax: &mut f32) {
+        // (The geometry's index is read only for a hit.)
+        let nearer = match *best {
+            None => t < *tmax,
+            Some((b, bt)) => t < b || (t == b && self.order[id] < bt),
+        };
+        if nearer {
+            *tmax = t;
+            *best = Some((t, self.order[id]));
+        }
+    }
+
+    /// [`PairTree::closest`] for the rays of the lanes set in `active`, four rays from one
+    /// origin (a record's gather rays through neighbouring strata): the tree is walked once
+    /// for all of them, each pair's two boxes tested against the four rays in SIMD lanes, a
+    /// subtree entered with the lanes that enter its box, a leaf tested for each of them. A
+    /// lane's hit is the one [`PairTree::closest`] finds: every triangle its ray can meet
+    /// lies in a box it enters, and the nearest hit does not depend on the order.
+    pub(super) fn closest4(
+        &self,
+        g: &Geometry,
+        rays: &[Ray; 4],
+        srs: &[ShearedRay; 4],
+        active: u32,
+    ) -> [Option<(f32, u32)>; 4] {
+        let mut best: [Option<(f32, u32)>; 4] = [None; 4];
+        let Some((root_box, root)) = &self.root else {
+            return best;
+        };
+        let mut tmax = rays.map(|r| r.tmax);
+        let active = (0..4)
+            .filter(|&i| active & (1 << i) != 0 && root_box.intersect_ray(&rays[i]) < tmax[i])
+            .fold(0u32, |m, i| m | 1 << i);
+        let leaf =
+            |link: Link, lanes: u32, tmax: &mut [f32; 4], best: &mut [Option<(f32, u32)>; 4]| {
+                let mut bits = lanes;
+                while bits != 0 {
+                    let i = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    let b = &mut best[i];
+                    self.leaf_hits(&srs[i], g, link, &mut tmax[i], |id, t, tmax| {
+                        self.keep_nearer(b, id, t, tmax);
+                        true
+                    });
+                }
+            };
+        if active == 0 {
+            return best;
+        }
+        if root.count > 0 {
+            leaf(*root, active, &mut tmax, &mut best);
+            return best;
+        }
+        let o = rays[0].origin;
+        let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
+        let (ix, iy, iz) = (inv(0), inv(1), inv(2));
+        obvhs::fast_stack!(u64, (96, 192), self.max_depth, stack, {
+            // The pair to open and the lanes that entered its parent's box.
+            let (mut current, mut lanes) = (root.index, active);
+            loop {
+                let p = &self.pairs[current as usize];
+                let far_limit = Vec4::from_array(tmax);
+                // Child `c`'s slab test for the four rays (obvhs's `Aabb::intersect_ray`,
+                // lane by lane): entry distances and the lanes that enter it.
+                let enter = |c: usize| {
+                    let slab = |lo: f32, hi: f32, o: f32, inv: Vec4| {
+                        (Vec4::splat(lo - o) * inv, Vec4::splat(hi - o) * inv)
+                    };
+                    let (x0, x1) = slab(p.x[c], p.x[c + 2], o.x, ix);
+                    let (y0, y1) = slab(p.y[c], p.y[c + 2], o.y, iy);
+                    let (z0, z1) = slab(p.z[c], p.z[c + 2], o.z, iz);
+                    let near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1));
+                    let far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1));
+                    let hit = far.cmpge(near) & far.cmpge(Vec4::ZERO) & near.cmplt(far_limit);
+                    (near, hit.bitmask() & lanes)
+                };
+                let mut kids = [(enter(0), p.link[0]), (enter(1), p.link[1])];
+                // The nearer first, for the first lane that enters both.
+                let both = kids[0].0.1 & kids[1].0.1;
+                if both != 0 {
+                    let i = both.trailing_zeros() as usize;
+                    if kids[1].0.0[i] < kids[0].0.0[i] {
+                        kids.swap(0, 1);
+                    }
+                }
+                // Leaves are tested now; pairs are opened, the nearer first.
+                let mut open = [(0u32, 0u32); 2];
+                let mut n = 0;
+                for ((_, entered), link) in kids {
+                    if entered == 0 {
+                        continue;
+                    }
+                    if link.count > 0 {
+                        leaf(link, entered, &mut tmax, &mut best);
+                    } else {
+                        open[n] = (link.index, entered);
+                        n += 1;
+                    }
+                }
+                let pack = |(index, lanes): (u32, u32)| u64::from(lanes) << 32 | u64::from(index);
+                (current, lanes) = match n {
+                    2 => {
+                        stack.push(pack(open[1]));
+                        open[0]
+                    }
+                    1 => open[0],
+                    _ => match stack.pop() {
+                        Some(next) => (next as u32, (next >> 32) as u32),
+                        None => break,
+                    },
+                };
+            }
         });
         best
     }

@@ -190,9 +190,36 @@ pub fn trace_strata(
     p: &CacheParams,
 ) -> Vec<GatherHit> {
     let rays = StratumRays::new(sp, id, p);
-    (0..p.strata[0] * p.strata[1])
-        .map(|s| rays.trace(frame, s))
-        .collect()
+    let [m, n] = p.strata;
+    let mut out: Vec<GatherHit> = (0..m * n)
+        .map(|_| GatherHit {
+            sp: None,
+            distance: f32::INFINITY,
+        })
+        .collect();
+    // Four neighbouring strata at a time (two of a ring by two of the next), traced together.
+    for j in (0..m).step_by(2) {
+        for k in (0..n).step_by(2) {
+            let strata: [Option<u32>; 4] = [(0, 0), (0, 1), (1, 0), (1, 1)]
+                .map(|(dj, dk)| (j + dj < m && k + dk < n).then_some((j + dj) * n + k + dk));
+            let dirs = strata.map(|s| s.and_then(|s| rays.ray(s)).map(|r| r.1));
+            let hits = frame.accel.closest4(
+                &frame.static_geometry,
+                &frame.dynamic_geometry,
+                rays.origin,
+                dirs,
+            );
+            for ((s, dir), hit) in strata.into_iter().zip(dirs).zip(hits) {
+                if let (Some(s), Some(dir), Some(h)) = (s, dir, hit) {
+                    out[s as usize] = GatherHit {
+                        sp: Some(SurfacePoint::new(frame, h, rays.origin, dir)),
+                        distance: h.t,
+                    };
+                }
+            }
+        }
+    }
+    out
 }
 
 /// The id under which a pixel sample that no record covers gathers on the spot: apart from
