@@ -417,28 +417,36 @@ impl Accel {
         let srs = dirs.map(|d| ShearedRay::new(origin, d));
         let statics = self.statics.tree.closest4(s, &rays, &srs, active);
         std::array::from_fn(|i| {
-            if active & (1 << i) == 0 {
-                return None;
-            }
-            let best = statics[i].map(|(t, triangle)| Hit {
+            (active & (1 << i) != 0).then(|| self.with_dynamic(d, statics[i], &rays[i], &srs[i]))?
+        })
+    }
+
+    /// The hit of a ray whose static hit is `statics` (distance, triangle): that one, or the
+    /// dynamic set's if nearer (the dynamic set is traced only up to the static hit, so a tie
+    /// keeps the static one).
+    fn with_dynamic(
+        &self,
+        d: &Geometry,
+        statics: Option<(f32, u32)>,
+        ray: &Ray,
+        sr: &ShearedRay,
+    ) -> Option<Hit> {
+        let ray = Ray {
+            tmax: statics.map_or(ray.tmax, |h| h.0),
+            ..*ray
+        };
+        match self.dynamic_tree.closest(d, &ray, sr) {
+            Some((t, triangle)) => Some(Hit {
+                t,
+                motion: Motion::Dynamic,
+                triangle,
+            }),
+            None => statics.map(|(t, triangle)| Hit {
                 t,
                 motion: Motion::Static,
                 triangle,
-            });
-            // The dynamic set only up to the static hit, as in `closest`.
-            let ray = Ray {
-                tmax: best.map_or(f32::INFINITY, |h| h.t),
-                ..rays[i]
-            };
-            match self.dynamic_tree.closest(d, &ray, &srs[i]) {
-                Some((t, triangle)) => Some(Hit {
-                    t,
-                    motion: Motion::Dynamic,
-                    triangle,
-                }),
-                None => best,
-            }
-        })
+            }),
+        }
     }
 
     /// Closest hit along `origin + t·dir` for `t` in `(0, tmax)`.
@@ -452,28 +460,9 @@ impl Accel {
     ) -> Option<Hit> {
         let dir = canonical(dir);
         let sr = ShearedRay::new(origin, dir);
-        let mut best: Option<Hit> = None;
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        if let Some((t, triangle)) = self.statics.tree.closest(s, &ray, &sr) {
-            best = Some(Hit {
-                t,
-                motion: Motion::Static,
-                triangle,
-            });
-        }
-        // The dynamic set only up to the static hit (a tie keeps the static one).
-        let ray = Ray {
-            tmax: best.map_or(tmax, |h| h.t),
-            ..ray
-        };
-        if let Some((t, triangle)) = self.dynamic_tree.closest(d, &ray, &sr) {
-            best = Some(Hit {
-                t,
-                motion: Motion::Dynamic,
-                triangle,
-            });
-        }
-        best
+        let statics = self.statics.tree.closest(s, &ray, &sr);
+        self.with_dynamic(d, statics, &ray, &sr)
     }
 
     /// True if a dynamic prim (of `d`, this frame's dynamic geometry) meets

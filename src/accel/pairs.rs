@@ -200,7 +200,8 @@ impl PairTree {
     }
 
     /// The distances along `sr` (within `tmax`, infinity for a miss) of `leaf`'s triangles
-    /// that may be hit, in slot order: `visit(slot, t)` returns false to stop.
+    /// that may be hit, in slot order: `visit(slot, t, tmax)` may shorten the ray and
+    /// returns false to stop.
     #[inline(always)]
     fn leaf_hits(
         &self,
@@ -216,13 +217,10 @@ impl PairTree {
             let lanes = (leaf.count as usize - 4 * b).min(4);
             let masked = (self.masked[base / 64] >> (base % 64)) as u32 & 0xf;
             let found = block_test(sr, &self.quads[base / 4], *tmax, masked);
-            let (hit, mut rest) = (found.hit, found.rest);
-            let mut bits = (hit | rest) & ((1 << lanes) - 1);
-            rest &= bits;
-            while bits != 0 {
-                let lane = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                let t = if rest & (1 << lane) != 0 {
+            // (A padding lane holds a triangle of three equal points, which no ray meets; left
+            // out, it costs no one-triangle test.)
+            for lane in set_bits((found.hit | found.rest) & ((1 << lanes) - 1)) {
+                let t = if found.rest & (1 << lane) != 0 {
                     self.distance(sr, g, base + lane, *tmax)
                 } else {
                     found.t[lane]
@@ -289,10 +287,7 @@ impl PairTree {
             .fold(0u32, |m, i| m | 1 << i);
         let leaf =
             |link: Link, lanes: u32, tmax: &mut [f32; 4], best: &mut [Option<(f32, u32)>; 4]| {
-                let mut bits = lanes;
-                while bits != 0 {
-                    let i = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
+                for i in set_bits(lanes) {
                     let b = &mut best[i];
                     self.leaf_hits(&srs[i], g, link, &mut tmax[i], |id, t, tmax| {
                         self.keep_nearer(b, id, t, tmax);
@@ -310,6 +305,10 @@ impl PairTree {
         let o = rays[0].origin;
         let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
         let (ix, iy, iz) = (inv(0), inv(1), inv(2));
+        // One axis's slab for the four rays: the distances to its two planes.
+        let slab = |lo: f32, hi: f32, o: f32, inv: Vec4| {
+            (Vec4::splat(lo - o) * inv, Vec4::splat(hi - o) * inv)
+        };
         obvhs::fast_stack!(u64, (96, 192), self.max_depth, stack, {
             // The pair to open and the lanes that entered its parent's box.
             let (mut current, mut lanes) = (root.index, active);
@@ -319,9 +318,6 @@ impl PairTree {
                 // Child `c`'s slab test for the four rays (obvhs's `Aabb::intersect_ray`,
                 // lane by lane): entry distances and the lanes that enter it.
                 let enter = |c: usize| {
-                    let slab = |lo: f32, hi: f32, o: f32, inv: Vec4| {
-                        (Vec4::splat(lo - o) * inv, Vec4::splat(hi - o) * inv)
-                    };
                     let (x0, x1) = slab(p.x[c], p.x[c + 2], o.x, ix);
                     let (y0, y1) = slab(p.y[c], p.y[c + 2], o.y, iy);
                     let (z0, z1) = slab(p.z[c], p.z[c + 2], o.z, iz);
@@ -456,17 +452,30 @@ impl PairTree {
     }
 }
 
-/// Block `q`'s four triangles tested against `sr` within `tmax`, lane by lane with the
-/// arithmetic of `ShearedRay::intersect_barycentric` (no fused operations, so each lane
-/// rounds as the one-triangle test does): `hit` holds the lanes hit at `t`, `rest` those that
-/// test must decide (module doc); `masked` has bit `i` set where lane `i`'s triangle is
-/// alpha-masked.
+/// What [`block_test`] finds of a block's four triangles: `hit` holds the lanes hit at `t`,
+/// `rest` those the one-triangle test must decide (module doc); as bits.
 struct BlockHits {
     t: Vec4,
     hit: u32,
     rest: u32,
 }
 
+/// The lanes set in `bits`, lowest first.
+#[inline(always)]
+fn set_bits(mut bits: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (bits != 0).then(|| {
+            let lane = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            lane
+        })
+    })
+}
+
+/// Block `q`'s four triangles tested against `sr` within `tmax`, lane by lane with the
+/// arithmetic of `ShearedRay::intersect_barycentric` (no fused operations, so each lane
+/// rounds as the one-triangle test does); `masked` has bit `i` set where lane `i`'s triangle
+/// is alpha-masked.
 #[inline(always)]
 fn block_test(sr: &ShearedRay, q: &Quad, tmax: f32, masked: u32) -> BlockHits {
     let (o, s) = (sr.origin, sr.shear);

@@ -6,6 +6,7 @@ use glam::Vec3;
 
 use super::directional::stratum_direction;
 use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Stratum};
+use crate::accel::Hit;
 use crate::geom::{Motion, basis};
 use crate::interaction::SurfacePoint;
 use crate::sampling::Sampler;
@@ -19,6 +20,23 @@ pub struct GatherHit {
 }
 
 impl GatherHit {
+    /// A ray that leaves below the surface or meets nothing.
+    pub const MISS: GatherHit = GatherHit {
+        sp: None,
+        distance: f32::INFINITY,
+    };
+
+    /// The gather hit of the ray from `o` along `dir` that met `hit` (`None`: a miss).
+    fn new(frame: &FrameScene, hit: Option<Hit>, o: Vec3, dir: Vec3) -> GatherHit {
+        match hit {
+            Some(h) => GatherHit {
+                sp: Some(SurfacePoint::new(frame, h, o, dir)),
+                distance: h.t,
+            },
+            None => GatherHit::MISS,
+        }
+    }
+
     /// The stratum flags of the hit: [`HIT_DYNAMIC`] for a dynamic prim, [`HIT_BACK`] for
     /// the back of a surface (none on a miss).
     pub fn flags(&self) -> u8 {
@@ -148,26 +166,17 @@ impl StratumRays {
 
     /// Traces stratum `s`.
     pub fn trace(&self, frame: &FrameScene, s: u32) -> GatherHit {
-        let miss = GatherHit {
-            sp: None,
-            distance: f32::INFINITY,
-        };
         let Some((o, dir)) = self.ray(s) else {
-            return miss;
+            return GatherHit::MISS;
         };
-        match frame.accel.closest(
+        let hit = frame.accel.closest(
             &frame.static_geometry,
             &frame.dynamic_geometry,
             o,
             dir,
             f32::INFINITY,
-        ) {
-            Some(h) => GatherHit {
-                sp: Some(SurfacePoint::new(frame, h, o, dir)),
-                distance: h.t,
-            },
-            None => miss,
-        }
+        );
+        GatherHit::new(frame, hit, o, dir)
     }
 
     /// Whether stratum `s`'s ray — the one [`StratumRays::trace`] traces — meets a dynamic
@@ -182,7 +191,8 @@ impl StratumRays {
     }
 }
 
-/// Traces every gather ray of a record at `sp`.
+/// Traces every gather ray of a record at `sp`, four neighbouring strata at a time
+/// ([`crate::accel::Accel::closest4`]): the hits [`StratumRays::trace`] finds one by one.
 pub fn trace_strata(
     frame: &FrameScene,
     sp: &SurfacePoint,
@@ -191,12 +201,7 @@ pub fn trace_strata(
 ) -> Vec<GatherHit> {
     let rays = StratumRays::new(sp, id, p);
     let [m, n] = p.strata;
-    let mut out: Vec<GatherHit> = (0..m * n)
-        .map(|_| GatherHit {
-            sp: None,
-            distance: f32::INFINITY,
-        })
-        .collect();
+    let mut out = vec![GatherHit::MISS; (m * n) as usize];
     // Four neighbouring strata at a time (two of a ring by two of the next), traced together.
     for j in (0..m).step_by(2) {
         for k in (0..n).step_by(2) {
@@ -210,11 +215,8 @@ pub fn trace_strata(
                 dirs,
             );
             for ((s, dir), hit) in strata.into_iter().zip(dirs).zip(hits) {
-                if let (Some(s), Some(dir), Some(h)) = (s, dir, hit) {
-                    out[s as usize] = GatherHit {
-                        sp: Some(SurfacePoint::new(frame, h, rays.origin, dir)),
-                        distance: h.t,
-                    };
+                if let (Some(s), Some(dir)) = (s, dir) {
+                    out[s as usize] = GatherHit::new(frame, hit, rays.origin, dir);
                 }
             }
         }
