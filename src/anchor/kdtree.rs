@@ -431,6 +431,25 @@ mod tests {
     use super::*;
     use glam::Vec3;
 
+    /// The `k` nearest of `pts` within `r` of `at` that `kept` keeps, by brute force.
+    fn brute_nearest(
+        pts: &[(Vec3, u32)],
+        at: Vec3,
+        r: f32,
+        k: usize,
+        kept: impl Fn(u32) -> bool,
+    ) -> Vec<(f32, u32)> {
+        let mut brute: Vec<(f32, u32)> = pts
+            .iter()
+            .filter(|p| kept(p.1))
+            .map(|&(p, i)| ((p - at).length_squared(), i))
+            .filter(|x| x.0 <= r * r)
+            .collect();
+        brute.sort_by(|x, y| x.partial_cmp(y).unwrap());
+        brute.truncate(k);
+        brute
+    }
+
     #[test]
     fn kd_tree_finds_the_same_neighbours_balanced_or_not() {
         // Scattered points, a plane of them (anchors lie on surfaces) and 40 that coincide,
@@ -472,14 +491,7 @@ mod tests {
             let kept = |i: u32| by_origin || !i.is_multiple_of(3);
             let a = inc.nearest(at, r, k, kept);
             let b = bal.nearest(at, r, k, kept);
-            let mut brute: Vec<(f32, u32)> = pts
-                .iter()
-                .filter(|p| kept(p.1))
-                .map(|&(p, i)| ((p - at).length_squared(), i))
-                .filter(|x| x.0 <= r * r)
-                .collect();
-            brute.sort_by(|x, y| x.partial_cmp(y).unwrap());
-            brute.truncate(k);
+            let brute = brute_nearest(&pts, at, r, k, kept);
             assert_eq!(a.to_vec(), brute, "query {q}");
             assert_eq!(b.to_vec(), brute, "query {q}");
         }
@@ -527,14 +539,7 @@ mod tests {
             // Every third query skips the coincident points with even items.
             let kept = |i: u32| q % 3 != 1 || i >= 1200 || i % 2 == 1;
             let found = t.nearest(at, r, k, kept);
-            let mut brute: Vec<(f32, u32)> = pts
-                .iter()
-                .filter(|p| kept(p.1))
-                .map(|&(p, i)| ((p - at).length_squared(), i))
-                .filter(|x| x.0 <= r * r)
-                .collect();
-            brute.sort_by(|x, y| x.partial_cmp(y).unwrap());
-            brute.truncate(k);
+            let brute = brute_nearest(&pts, at, r, k, kept);
             assert_eq!(found.to_vec(), brute, "query {q}");
         }
     }
