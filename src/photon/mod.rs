@@ -1058,6 +1058,32 @@ mod tests {
         }
     }
 
+    /// Values spread over [0, 1), one per call (any spread will do).
+    fn draws() -> impl FnMut() -> f32 {
+        let mut drawn = 0u32;
+        move || {
+            drawn += 1;
+            (crate::sampling::hash(&[drawn]) >> 8) as f32 / (1u32 << 24) as f32
+        }
+    }
+
+    /// `n` lines in directions and at distances (below `r`) drawn from `next`, a share
+    /// `centre` of them through the centre.
+    fn random_lines(
+        n: usize,
+        r: f32,
+        centre: f32,
+        next: &mut impl FnMut() -> f32,
+    ) -> Vec<(Vec2, f32)> {
+        (0..n)
+            .map(|_| {
+                let phi = 2.0 * PI * next();
+                let h = if next() < centre { 0.0 } else { r * next() };
+                (Vec2::new(phi.cos(), phi.sin()), h)
+            })
+            .collect()
+    }
+
     /// The kept area by integrating ½ρ(θ)² in double precision over 2¹⁶ directions (ρ the
     /// distance to the nearest line along each, or the rim): within a millionth of the
     /// disc of the true area for these tests' few lines.
@@ -1134,23 +1160,11 @@ mod tests {
     /// disc: on the stack (up to 32 lines) and on the heap.
     #[test]
     fn the_clipped_area_is_the_area_within_every_line() {
-        // Any spread of values in [0, 1) will do.
-        let mut drawn = 0u32;
-        let mut next = || {
-            drawn += 1;
-            (crate::sampling::hash(&[drawn]) >> 8) as f32 / (1u32 << 24) as f32
-        };
+        let mut next = draws();
         for n in (2..=24).chain([31, 32, 33, 47, 80]) {
             for _ in 0..6 {
                 let r = 1e-3 + 1e3 * next() * next();
-                let lines = (0..n)
-                    .map(|_| {
-                        let phi = 2.0 * PI * next();
-                        let h = if next() < 0.1 { 0.0 } else { r * next() };
-                        (Vec2::new(phi.cos(), phi.sin()), h)
-                    })
-                    .collect();
-                let c = clip_of(r, lines);
+                let c = clip_of(r, random_lines(n, r, 0.1, &mut next));
                 let full = (PI * r * r) as f64;
                 let by_directions = area_by_directions(&c);
                 let area = c.with_lanes(|lanes| c.cut_area(lanes));
@@ -1167,21 +1181,10 @@ mod tests {
     /// a line and lines through the centre: for 1 to 40 lines, on the stack and the heap.
     #[test]
     fn the_lanes_keep_the_points_every_line_keeps() {
-        let mut drawn = 0u32;
-        let mut next = || {
-            drawn += 1;
-            (crate::sampling::hash(&[drawn]) >> 8) as f32 / (1u32 << 24) as f32
-        };
+        let mut next = draws();
         for n in 1..=40 {
             let r = 0.01 + 10.0 * next();
-            let lines: Vec<(Vec2, f32)> = (0..n)
-                .map(|_| {
-                    let phi = 2.0 * PI * next();
-                    let h = if next() < 0.2 { 0.0 } else { r * next() };
-                    (Vec2::new(phi.cos(), phi.sin()), h)
-                })
-                .collect();
-            let c = clip_of(r, lines);
+            let c = clip_of(r, random_lines(n, r, 0.2, &mut next));
             for i in 0..200 {
                 // Points anywhere on the disc, and points exactly on the first line.
                 let q = if i % 4 == 0 {
