@@ -257,15 +257,64 @@ pub fn map_in_query_order<T: Send>(points: &[Vec3], f: impl Fn(usize) -> T + Syn
 
 /// [`map_in_query_order`] with the points' [`query_order`] computed already (several
 /// batches at the same points).
+///
+/// Each answer is written straight to its point's slot by the thread that computed it. A
+/// batch holds up to millions of answers (a frame's gather hits), and putting them back in
+/// order on one thread — a scatter into optional slots, then a pass that unwraps them —
+/// took 0.13–0.15 s of a Sponza frame at the final preset. That needs `unsafe`: the slots
+/// are written in parallel through one pointer, which is sound because `order` is checked
+/// to be a permutation (each slot written once, by one thread). Any other order (none of
+/// this crate's) is answered in the points' order for the points it names, as before.
 pub fn map_in_order<T: Send>(order: &[u32], f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     use rayon::prelude::*;
-    let answers: Vec<T> = order.par_iter().map(|&i| f(i as usize)).collect();
-    let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(order.len()).collect();
-    for (&i, a) in order.iter().zip(answers) {
-        out[i as usize] = Some(a);
+    use std::mem::MaybeUninit;
+    if !is_permutation(order) {
+        let answers: Vec<T> = order.par_iter().map(|&i| f(i as usize)).collect();
+        let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(order.len()).collect();
+        for (&i, a) in order.iter().zip(answers) {
+            if let Some(slot) = out.get_mut(i as usize) {
+                *slot = Some(a);
+            }
+        }
+        return out.into_iter().flatten().collect();
     }
-    // The order is a permutation of the points: every slot is filled.
-    out.into_iter().flatten().collect()
+    let mut out: Vec<MaybeUninit<T>> = Vec::with_capacity(order.len());
+    out.resize_with(order.len(), MaybeUninit::uninit);
+    let slots = Slots(out.as_mut_ptr());
+    order.par_iter().for_each(|&i| {
+        let answer = f(i as usize);
+        // SAFETY: `order` is a permutation of 0..len (checked above): slot `i` lies within
+        // `out`, which outlives this loop, and no other iteration writes it. (Should `f`
+        // panic, `out` is dropped as uninitialised slots: the answers written leak.)
+        unsafe { slots.get().add(i as usize).write(MaybeUninit::new(answer)) };
+    });
+    // SAFETY: every slot was written once (a permutation), and `MaybeUninit<T>` has `T`'s
+    // size and alignment, so the buffer holds `len` initialised `T`s.
+    let mut out = std::mem::ManuallyDrop::new(out);
+    unsafe { Vec::from_raw_parts(out.as_mut_ptr().cast::<T>(), out.len(), out.capacity()) }
+}
+
+/// Whether `order` holds each of 0..len once.
+fn is_permutation(order: &[u32]) -> bool {
+    let mut seen = vec![false; order.len()];
+    order.iter().all(|&i| {
+        seen.get_mut(i as usize)
+            .is_some_and(|s| !std::mem::replace(s, true))
+    })
+}
+
+/// The slots [`map_in_order`] writes from several threads at once.
+struct Slots<T>(*mut std::mem::MaybeUninit<T>);
+
+// SAFETY: the threads write distinct slots only (`map_in_order`), each a `T: Send`.
+unsafe impl<T: Send> Send for Slots<T> {}
+unsafe impl<T: Send> Sync for Slots<T> {}
+
+impl<T> Slots<T> {
+    /// The first slot (a method, so that closures capture the `Slots` and not the pointer).
+    fn get(&self) -> *mut std::mem::MaybeUninit<T> {
+        self.0
+    }
 }
 
 /// Keeps the `k` least of `buf` (squared distance, tree position) by squared distance, then
@@ -427,6 +476,20 @@ mod tests {
         let back = map_in_query_order(&points, |i| i);
         assert!(back.into_iter().eq(0..points.len()));
         assert!(map_in_query_order(&[], |i| i).is_empty());
+        // Answers that own heap memory come back whole, in the points' order.
+        let order = query_order(&points);
+        let named = map_in_order(&order, |i| format!("point {i}"));
+        assert!(
+            named
+                .iter()
+                .enumerate()
+                .all(|(i, s)| *s == format!("point {i}"))
+        );
+        // An order that is no permutation answers the points it names, in their order.
+        assert!(!is_permutation(&[0, 2, 2]) && !is_permutation(&[0, 3]));
+        assert!(is_permutation(&[2, 0, 1]) && is_permutation(&[]));
+        assert_eq!(map_in_order(&[2, 0, 2], |i| i), [0, 2]);
+        assert_eq!(map_in_order(&[1, 7], |i| i), [1]);
     }
 
     #[test]
