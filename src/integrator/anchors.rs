@@ -394,7 +394,7 @@ fn reestimate_anchors(
 /// shared by the frame's batches over every anchor (albedo, L_i, photon links).
 pub struct AnchorPlaces {
     positions: Vec<Vec3>,
-    order: Vec<u32>,
+    order: crate::photon::knn::QueryOrder,
 }
 
 impl AnchorPlaces {

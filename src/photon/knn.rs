@@ -213,11 +213,16 @@ impl PointTree {
     }
 }
 
+/// An order of a batch's points, each index once: made only by [`query_order`], so that
+/// [`map_in_order`] can write each answer to its own slot from any thread.
+pub struct QueryOrder(Vec<u32>);
+
 /// An order in which to query the tree at `points` (indices into it): along a Morton curve
 /// over their bounding box (10 bits per axis; points not finite first), so that consecutive
 /// queries visit the same nodes and points and find them in cache. The answers do not
 /// depend on the order.
-pub fn query_order(points: &[Vec3]) -> Vec<u32> {
+pub fn query_order(points: &[Vec3]) -> QueryOrder {
+    assert!(points.len() <= u32::MAX as usize, "at most 2^32 points");
     let (lo, hi) = points
         .iter()
         .filter(|p| p.is_finite())
@@ -245,7 +250,7 @@ pub fn query_order(points: &[Vec3]) -> Vec<u32> {
         .collect();
     // Keys with their index are distinct: the order is the same however the sort splits.
     order.par_sort_unstable();
-    order.into_par_iter().map(|(_, i)| i).collect()
+    QueryOrder(order.into_par_iter().map(|(_, i)| i).collect())
 }
 
 /// `f(i)` for every point `i` of `points`, computed in parallel in [`query_order`] and
@@ -262,28 +267,18 @@ pub fn map_in_query_order<T: Send>(points: &[Vec3], f: impl Fn(usize) -> T + Syn
 /// batch holds up to millions of answers (a frame's gather hits), and putting them back in
 /// order on one thread — a scatter into optional slots, then a pass that unwraps them —
 /// took 0.13–0.15 s of a Sponza frame at the final preset. That needs `unsafe`: the slots
-/// are written in parallel through one pointer, which is sound because `order` is checked
-/// to be a permutation (each slot written once, by one thread). Any other order (none of
-/// this crate's) is answered in the points' order for the points it names, as before.
-pub fn map_in_order<T: Send>(order: &[u32], f: impl Fn(usize) -> T + Sync) -> Vec<T> {
+/// are written in parallel through one pointer, which is sound because a [`QueryOrder`] is
+/// a permutation (each slot written once, by one thread).
+pub fn map_in_order<T: Send>(order: &QueryOrder, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     use rayon::prelude::*;
     use std::mem::MaybeUninit;
-    if !is_permutation(order) {
-        let answers: Vec<T> = order.par_iter().map(|&i| f(i as usize)).collect();
-        let mut out: Vec<Option<T>> = std::iter::repeat_with(|| None).take(order.len()).collect();
-        for (&i, a) in order.iter().zip(answers) {
-            if let Some(slot) = out.get_mut(i as usize) {
-                *slot = Some(a);
-            }
-        }
-        return out.into_iter().flatten().collect();
-    }
+    let order = &order.0;
     let mut out: Vec<MaybeUninit<T>> = Vec::with_capacity(order.len());
     out.resize_with(order.len(), MaybeUninit::uninit);
     let slots = Slots(out.as_mut_ptr());
     order.par_iter().for_each(|&i| {
         let answer = f(i as usize);
-        // SAFETY: `order` is a permutation of 0..len (checked above): slot `i` lies within
+        // SAFETY: `order` is a permutation of 0..len ([`query_order`]): slot `i` lies within
         // `out`, which outlives this loop, and no other iteration writes it. (Should `f`
         // panic, `out` is dropped as uninitialised slots: the answers written leak.)
         unsafe { slots.get().add(i as usize).write(MaybeUninit::new(answer)) };
@@ -292,15 +287,6 @@ pub fn map_in_order<T: Send>(order: &[u32], f: impl Fn(usize) -> T + Sync) -> Ve
     // size and alignment, so the buffer holds `len` initialised `T`s.
     let mut out = std::mem::ManuallyDrop::new(out);
     unsafe { Vec::from_raw_parts(out.as_mut_ptr().cast::<T>(), out.len(), out.capacity()) }
-}
-
-/// Whether `order` holds each of 0..len once.
-fn is_permutation(order: &[u32]) -> bool {
-    let mut seen = vec![false; order.len()];
-    order.iter().all(|&i| {
-        seen.get_mut(i as usize)
-            .is_some_and(|s| !std::mem::replace(s, true))
-    })
 }
 
 /// The slots [`map_in_order`] writes from several threads at once.
@@ -454,7 +440,7 @@ mod tests {
             })
             .chain([Vec3::NAN, Vec3::splat(f32::INFINITY)])
             .collect();
-        let mut order = query_order(&points);
+        let mut order = query_order(&points).0;
         // Neighbours along the curve are near in space: its steps are short on average.
         let step: f32 = order
             .windows(2)
@@ -485,11 +471,6 @@ mod tests {
                 .enumerate()
                 .all(|(i, s)| *s == format!("point {i}"))
         );
-        // An order that is no permutation answers the points it names, in their order.
-        assert!(!is_permutation(&[0, 2, 2]) && !is_permutation(&[0, 3]));
-        assert!(is_permutation(&[2, 0, 1]) && is_permutation(&[]));
-        assert_eq!(map_in_order(&[2, 0, 2], |i| i), [0, 2]);
-        assert_eq!(map_in_order(&[1, 7], |i| i), [1]);
     }
 
     #[test]
