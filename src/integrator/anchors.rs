@@ -70,36 +70,13 @@ fn resolve(
     previous: Option<&[Vec<Stratum>]>,
     linking: &mut f64,
 ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
-    // Estimated in the photon tree's spatial order (knn::query_order).
-    let at_dynamic: Vec<&crate::interaction::SurfacePoint> = hits
-        .iter()
-        .flatten()
-        .filter_map(|g| g.sp.as_ref().filter(|sp| sp.hit.motion == Motion::Dynamic))
-        .collect();
-    let positions: Vec<Vec3> = at_dynamic.iter().map(|sp| sp.position).collect();
-    let mut estimates = crate::photon::knn::map_in_query_order(&positions, |i| {
-        let sp = at_dynamic[i];
-        sp.albedo(att.m)
-            * std::f32::consts::FRAC_1_PI
-            * att.pm.irradiance(sp.position, sp.ng, att.k)
-    })
-    .into_iter();
-    let dynamic: Vec<Vec<Vec3>> = hits
-        .iter()
-        .map(|h| {
-            h.iter()
-                .map(|g| match &g.sp {
-                    Some(sp) if sp.hit.motion == Motion::Dynamic => {
-                        estimates.next().unwrap_or(Vec3::ZERO)
-                    }
-                    _ => Vec3::ZERO,
-                })
-                .collect()
-        })
-        .collect();
+    // A batch holds up to millions of hits: every pass over them runs per record, in
+    // parallel, and finds its place in the batch's flat lists (dynamic hits, attaching
+    // hits) by its offsets there.
+    let is = |g: &GatherHit, m: Motion| g.sp.as_ref().is_some_and(|sp| sp.hit.motion == m);
     // Per hit, the anchor a re-shot stratum keeps (its ray landed where it did before).
     let kept: Vec<Vec<Option<AnchorId>>> = hits
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(ri, h)| {
             let scale = footprints[ri];
@@ -117,48 +94,92 @@ fn resolve(
                 .collect()
         })
         .collect();
+    // A static hit attaches unless it keeps its anchor.
+    let attaches = |g: &GatherHit, k: &Option<AnchorId>| k.is_none() && is(g, Motion::Static);
+    // Each record's first place among the dynamic hits and the attaching hits.
+    let mut offsets: Vec<(usize, usize)> = hits
+        .par_iter()
+        .zip(&kept)
+        .map(|(h, k)| {
+            let dynamic = h.iter().filter(|g| is(g, Motion::Dynamic)).count();
+            let attaching = h.iter().zip(k).filter(|(g, k)| attaches(g, k)).count();
+            (dynamic, attaching)
+        })
+        .collect();
+    let mut total = (0, 0);
+    for o in offsets.iter_mut() {
+        let count = *o;
+        *o = total;
+        total = (total.0 + count.0, total.1 + count.1);
+    }
+    // Dynamic hits by the photon map, estimated in the photon tree's spatial order
+    // (knn::query_order).
+    let at_dynamic: Vec<&crate::interaction::SurfacePoint> = hits
+        .par_iter()
+        .flat_map_iter(|h| {
+            h.iter()
+                .filter(|g| is(g, Motion::Dynamic))
+                .filter_map(|g| g.sp.as_ref())
+        })
+        .collect();
+    let positions: Vec<Vec3> = at_dynamic.par_iter().map(|sp| sp.position).collect();
+    let dynamic = crate::photon::knn::map_in_query_order(&positions, |i| {
+        let sp = at_dynamic[i];
+        sp.albedo(att.m)
+            * std::f32::consts::FRAC_1_PI
+            * att.pm.irradiance(sp.position, sp.ng, att.k)
+    });
     // The static hits that attach, in record and stratum order.
     let attaching: Vec<&crate::interaction::SurfacePoint> = hits
-        .iter()
+        .par_iter()
         .zip(&kept)
-        .flat_map(|(h, k)| h.iter().zip(k))
-        .filter_map(|(g, k)| match (&g.sp, k) {
-            (Some(sp), None) if sp.hit.motion == Motion::Static => Some(sp),
-            _ => None,
+        .flat_map_iter(|(h, k)| {
+            h.iter()
+                .zip(k)
+                .filter(|(g, k)| attaches(g, k))
+                .filter_map(|(g, _)| g.sp.as_ref())
         })
         .collect();
     let t = Instant::now();
     let (attached, created) = att.link_all(set, &attaching);
     *linking += t.elapsed().as_secs_f64();
     att.estimate_created(set, &created);
-    let mut attached = attached.into_iter();
-    let mut out = Vec::with_capacity(hits.len());
-    for (ri, (h, dyn_rad)) in hits.iter().zip(dynamic).enumerate() {
-        let scale = footprints[ri];
-        let mut strata = Vec::with_capacity(h.len());
-        let mut rad = Vec::with_capacity(h.len());
-        for (si, g) in h.iter().enumerate() {
-            let flags = g.flags();
-            let link = match (&g.sp, kept[ri][si]) {
-                (Some(sp), Some(id)) if sp.hit.motion == Motion::Static => Some(id),
-                (Some(sp), _) if sp.hit.motion == Motion::Dynamic => None,
-                (Some(_), _) => attached.next(),
-                (None, _) => None,
-            };
-            let (stratum, radiance) = match (&g.sp, link) {
-                (Some(_), Some(id)) => (
-                    Stratum::new(Some(id), flags, g.distance, scale),
-                    set.anchor(id).radiance(),
-                ),
-                (Some(_), None) => (Stratum::new(None, flags, g.distance, scale), dyn_rad[si]),
-                (None, _) => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
-            };
-            strata.push(stratum);
-            rad.push(radiance);
-        }
-        out.push((strata, rad));
-    }
-    out
+    let set = &*set;
+    hits.par_iter()
+        .zip(&kept)
+        .zip(&offsets)
+        .enumerate()
+        .map(
+            |(ri, ((h, kept), &(mut next_dynamic, mut next_attached)))| {
+                let scale = footprints[ri];
+                let mut strata = Vec::with_capacity(h.len());
+                let mut rad = Vec::with_capacity(h.len());
+                for (g, k) in h.iter().zip(kept) {
+                    let (stratum, radiance) = match &g.sp {
+                        Some(sp) if sp.hit.motion == Motion::Dynamic => {
+                            let radiance = dynamic[next_dynamic];
+                            next_dynamic += 1;
+                            (Stratum::new(None, g.flags(), g.distance, scale), radiance)
+                        }
+                        Some(_) => {
+                            let id = k.unwrap_or_else(|| {
+                                next_attached += 1;
+                                attached[next_attached - 1]
+                            });
+                            (
+                                Stratum::new(Some(id), g.flags(), g.distance, scale),
+                                set.anchor(id).radiance(),
+                            )
+                        }
+                        None => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
+                    };
+                    strata.push(stratum);
+                    rad.push(radiance);
+                }
+                (strata, rad)
+            },
+        )
+        .collect()
 }
 
 /// One frame of the anchor method's cache work (Pseudocode 2): everything up to shading,
