@@ -685,17 +685,34 @@ fn strata_radiance(radiance: &[Vec3], strata: &[Stratum]) -> Vec<Vec3> {
         .collect()
 }
 
-/// How many strata link each anchor.
+/// How many strata link each anchor: counted over one share of the records per thread
+/// (tens of millions of strata at the final preset), then added.
 fn anchor_references(set: &AnchorSet, cache: &IrradianceCache) -> Vec<u32> {
-    let mut refs = vec![0u32; set.anchors.len()];
-    for r in &cache.records {
-        for s in &r.strata {
+    let n = set.anchors.len();
+    let share = cache
+        .records
+        .len()
+        .div_ceil(rayon::current_num_threads())
+        .max(1);
+    let count = |records: &[crate::cache::Record]| {
+        let mut refs = vec![0u32; n];
+        for s in records.iter().flat_map(|r| &r.strata) {
             if let Some(a) = s.link() {
                 refs[a.index()] += 1;
             }
         }
-    }
-    refs
+        refs
+    };
+    let add = |mut a: Vec<u32>, b: Vec<u32>| {
+        a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        a
+    };
+    cache
+        .records
+        .par_chunks(share)
+        .map(count)
+        .reduce_with(add)
+        .unwrap_or_else(|| vec![0; n])
 }
 
 /// Anchors by how many strata link them (the paper's Figure 8).
