@@ -685,15 +685,17 @@ fn strata_radiance(radiance: &[Vec3], strata: &[Stratum]) -> Vec<Vec3> {
         .collect()
 }
 
+/// The most shares [`anchor_references`] counts in at once: 4 bytes per anchor each, for
+/// as long as the count takes (an anchor itself takes 20).
+const REFERENCE_SHARES: usize = 4;
+
 /// How many strata link each anchor: counted over one share of the records per thread
-/// (tens of millions of strata at the final preset), then added.
+/// (tens of millions of strata at the final preset), then added. Each share counts into an
+/// array over all anchors, so there are at most [`REFERENCE_SHARES`] of them.
 fn anchor_references(set: &AnchorSet, cache: &IrradianceCache) -> Vec<u32> {
     let n = set.anchors.len();
-    let share = cache
-        .records
-        .len()
-        .div_ceil(rayon::current_num_threads())
-        .max(1);
+    let shares = rayon::current_num_threads().clamp(1, REFERENCE_SHARES);
+    let share = cache.records.len().div_ceil(shares).max(1);
     let count = |records: &[crate::cache::Record]| {
         let mut refs = vec![0u32; n];
         for s in records.iter().flat_map(|r| &r.strata) {
