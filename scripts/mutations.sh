@@ -40,13 +40,15 @@ declare -A TESTS=(
   [batch-anchors-not-in-tree]="anchors::a_batch_links"
   [untouched-test-short]="anchors::kept_anchor_estimates"
   [dynamic-radiance-misplaced]="anchor_faults anchors::"
+  [references-one-share]="anchors::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
   ray-offsets-shrunk glossy-through-albedo replay-without-ray-check replay-direct-without-keys
   replay-reads-without-key replay-emitters-without-pick-check slack-near-dynamic slack-ignored
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
-  batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced)
+  batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
+  references-one-share)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
