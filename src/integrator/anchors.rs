@@ -209,12 +209,12 @@ pub fn update(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true); // every anchor may reflect another colour
     }
-    relink_photons(set, pm, &at);
+    relink_photons(set, pm, &at, &nearest);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
     let before = cache.len();
@@ -293,12 +293,12 @@ pub fn relight(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true);
     }
-    relink_photons(set, pm, &at);
+    relink_photons(set, pm, &at, &nearest);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
     let att = Attacher {
@@ -358,15 +358,16 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet, at: &AnchorPlaces
 /// were estimated. The photons follow the same paths wherever nothing moved, so an anchor
 /// whose last estimate reached no photon that changed (gone, new or different) would get
 /// the same photons and the same value: it keeps it, and only the others are estimated
-/// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated
-/// and, per anchor, whether its L_i may differ from the last frame's (estimated again, or a
-/// free slot that a new anchor may fill).
+/// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated;
+/// per anchor, whether its L_i may differ from the last frame's (estimated again, or a free
+/// slot that a new anchor may fill); and per anchor estimated again, its nearest photon
+/// (`Some(None)`: none within the photon map's maximum radius), which the search found.
 fn reestimate_anchors(
     set: &mut AnchorSet,
     pm: &PhotonMap,
     anchor_k: usize,
     at: &AnchorPlaces,
-) -> (u64, Vec<bool>) {
+) -> (u64, Vec<bool>, Vec<Option<Option<u32>>>) {
     let changed = pm.changed_since(&set.previous_photons);
     // Where most photons changed (a light or a material edited, a first frame), nearly
     // every anchor is reached by one: each is estimated again without the test.
@@ -383,32 +384,35 @@ fn reestimate_anchors(
         (!changed.is_empty() && !all).then(|| crate::photon::knn::PointTree::new(&changed));
     let set_ref = &*set;
     let positions = &at.positions;
-    let fresh: Vec<Option<(Vec3, f32)>> = crate::photon::knn::map_in_order(&at.order, |i| {
-        let a = &set_ref.anchors[i];
-        if !a.is_live() {
-            return None;
-        }
-        let x = positions[i];
-        let r2 = set_ref.reach2(AnchorId(i as u32));
-        let untouched =
-            r2.is_finite() && !all && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
-        (!untouched).then(|| match near {
-            true => pm.irradiance_and_radius_near(x, a.normal(), anchor_k, r2),
-            false => pm.irradiance_and_radius(x, a.normal(), anchor_k),
-        })
-    });
+    let fresh: Vec<Option<(Vec3, f32, Option<usize>)>> =
+        crate::photon::knn::map_in_order(&at.order, |i| {
+            let a = &set_ref.anchors[i];
+            if !a.is_live() {
+                return None;
+            }
+            let x = positions[i];
+            let r2 = set_ref.reach2(AnchorId(i as u32));
+            let untouched = r2.is_finite()
+                && !all
+                && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
+            let r2_near = if near { r2 } else { f32::INFINITY };
+            (!untouched)
+                .then(|| pm.irradiance_radius_and_nearest_near(x, a.normal(), anchor_k, r2_near))
+        });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
+    let mut nearest = vec![None; set.anchors.len()];
     let mut count = 0;
     for (i, e) in fresh.into_iter().enumerate() {
-        if let Some((e, r2)) = e {
+        if let Some((e, r2, ph)) = e {
             let id = AnchorId(i as u32);
             set.anchor_mut(id).set_irradiance(e);
             set.set_reach(id, r2);
             changed[i] = true;
+            nearest[i] = Some(ph.map(|ph| ph as u32));
             count += 1;
         }
     }
-    (count, changed)
+    (count, changed, nearest)
 }
 
 /// The anchors' decoded positions and their Morton order ([`crate::photon::knn::query_order`]),
@@ -428,16 +432,25 @@ impl AnchorPlaces {
 }
 
 /// Keeps this frame's photon paths for the next frame's comparison, and links each anchor's
-/// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it).
-fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap, at: &AnchorPlaces) {
+/// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it). `known` holds
+/// the nearest photon of the anchors whose L_i was estimated again this frame
+/// ([`reestimate_anchors`]); the others' is searched for.
+fn relink_photons(
+    set: &mut AnchorSet,
+    pm: &PhotonMap,
+    at: &AnchorPlaces,
+    known: &[Option<Option<u32>>],
+) {
     set.previous_photons = pm.paths();
     set.photon_links = vec![None; pm.photons.len()];
     let positions = &at.positions;
     let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_order(&at.order, |i| {
-        if set.anchors[i].is_live() {
-            pm.nearest(positions[i])
-        } else {
-            None
+        if !set.anchors[i].is_live() {
+            return None;
+        }
+        match known[i] {
+            Some(ph) => ph.map(|ph| ph as usize),
+            None => pm.nearest(positions[i]),
         }
     });
     for (i, ph) in nearest.into_iter().enumerate() {

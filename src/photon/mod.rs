@@ -552,27 +552,45 @@ impl PhotonMap {
     }
 
     /// [`PhotonMap::irradiance_and_radius`] searched first within `r2_near` (an earlier
-    /// estimate's reach at the same point): where at least `k` photons lie within it, they
-    /// are the `k` nearest and the result is the same, found without the unbounded search's
-    /// first visits; elsewhere (fewer photons there now) the search runs unbounded.
-    pub fn irradiance_and_radius_near(
+    /// estimate's reach at the same point; infinite: none), with the index of the photon
+    /// nearest to `x` ([`PhotonMap::nearest`]'s answer). Where at least `k` photons lie
+    /// within `r2_near`, they are the `k` nearest, found without the unbounded search's
+    /// first visits; elsewhere (fewer photons there now) the search runs unbounded. The
+    /// nearest photon is the nearest of those found (by squared distance, then index, as
+    /// [`knn::PointTree::nearest_one`] ranks them), so an anchor's re-estimate also tells
+    /// which photon it links (§3.3.2) without a search of its own.
+    pub fn irradiance_radius_and_nearest_near(
         &self,
         x: Vec3,
         n: Vec3,
         k: usize,
         r2_near: f32,
-    ) -> (Vec3, f32) {
+    ) -> (Vec3, f32, Option<usize>) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);
+        let answer = |found: &[knn::Neighbour]| {
+            let (e, r2) = self.estimate(x, n, k, r2_max, found);
+            // The least squared distance first; indices only break its ties.
+            let mut nearest: Option<knn::Neighbour> = None;
+            for &(d2, pos) in found {
+                let closer = nearest.is_none_or(|(b2, b)| {
+                    d2 < b2 || (d2 == b2 && self.tree.item(pos) < self.tree.item(b))
+                });
+                if closer {
+                    nearest = Some((d2, pos));
+                }
+            }
+            (e, r2, nearest.map(|(_, pos)| self.tree.item(pos) as usize))
+        };
         if r2_near < r2_max {
             let near = self.tree.nearest_within(x, r2_near, k, |found| {
-                (found.len() >= k).then(|| self.estimate(x, n, k, r2_max, found))
+                (found.len() >= k).then(|| answer(found))
             });
             if let Some(e) = near {
                 return e;
             }
         }
-        self.irradiance_and_radius(x, n, k)
+        self.tree.nearest_within(x, r2_max, k, answer)
     }
 
     /// The estimate at `x` from the `found` photons (the k nearest within `r2_max`).
