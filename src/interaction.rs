@@ -118,16 +118,10 @@ impl SurfacePoint {
     /// their surface's error box towards each other, and the ray stops [`SHADOW_EPSILON`]
     /// short of the far end. `None` if the ends coincide.
     pub fn spawn_to(&self, target: Vec3, target_error: Vec3, target_n: Vec3) -> Option<Segment> {
-        let origin = offset_ray_origin(self.position, self.error, self.ng, target - self.position);
-        let end = offset_ray_origin(target, target_error, target_n, origin - target);
-        let d = end - origin;
-        let length = d.length();
-        (length > 0.0 && length.is_finite()).then(|| Segment {
-            origin,
-            dir: d / length,
-            length,
-            tmax: length * (1.0 - SHADOW_EPSILON),
-        })
+        Segment::between(
+            (self.position, self.error, self.ng),
+            (target, target_error, target_n),
+        )
     }
 
     /// The reflectance photon look-ups and final-gather hits shade with, treating the surface
@@ -234,6 +228,26 @@ pub struct Segment {
     pub length: f32,
     /// Where the occlusion test stops.
     pub tmax: f32,
+}
+
+impl Segment {
+    /// The shadow ray from a point `from` to a point `to` on surfaces, each given as
+    /// (position, error bound, geometric normal) ([`SurfacePoint::spawn_to`]). `None` if
+    /// the ends coincide.
+    pub fn between(from: (Vec3, Vec3, Vec3), to: (Vec3, Vec3, Vec3)) -> Option<Segment> {
+        let (position, error, ng) = from;
+        let (target, target_error, target_n) = to;
+        let origin = offset_ray_origin(position, error, ng, target - position);
+        let end = offset_ray_origin(target, target_error, target_n, origin - target);
+        let d = end - origin;
+        let length = d.length();
+        (length > 0.0 && length.is_finite()).then(|| Segment {
+            origin,
+            dir: d / length,
+            length,
+            tmax: length * (1.0 - SHADOW_EPSILON),
+        })
+    }
 }
 
 /// The surface the ray `o + t·d` meets first, if any.

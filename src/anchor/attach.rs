@@ -30,7 +30,7 @@ use super::importons::Importons;
 use super::kdtree::Neighbours;
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree};
 use crate::accel::{gamma, offset_ray_origin};
-use crate::interaction::{Materials, SurfacePoint};
+use crate::interaction::{Materials, Segment, SurfacePoint};
 use crate::photon::PhotonMap;
 use crate::scene::FrameScene;
 
@@ -48,13 +48,13 @@ pub struct Attacher<'a> {
 }
 
 impl Attacher<'_> {
-    fn acceptable(&self, set: &AnchorSet, id: AnchorId, sp: &SurfacePoint, albedo: Vec3) -> bool {
+    fn acceptable(&self, set: &AnchorSet, id: AnchorId, hit: &AttachPoint) -> bool {
         let a = set.anchor(id);
         // Cheapest first (§3.1): normal, albedo, then visibility by a shadow ray.
-        if a.normal().dot(sp.ng) < self.params.normal_cos {
+        if a.normal().dot(hit.ng) < self.params.normal_cos {
             return false;
         }
-        if (a.albedo() - albedo).abs().max_element() > self.params.albedo_tolerance {
+        if (a.albedo() - hit.albedo).abs().max_element() > self.params.albedo_tolerance {
             return false;
         }
         // The decoded position is off the anchor's surface by at most the quantiser's
@@ -64,7 +64,8 @@ impl Attacher<'_> {
         let p = a.position(&set.quantizer);
         let p_error = 2.0 * set.quantizer.error() + p.abs() * gamma(7);
         let target = offset_ray_origin(p, p_error, a.normal(), a.normal());
-        let Some(s) = sp.spawn_to(target, Vec3::ZERO, a.normal()) else {
+        let from = (hit.position, hit.error, hit.ng);
+        let Some(s) = Segment::between(from, (target, Vec3::ZERO, a.normal())) else {
             return true;
         };
         !self.frame.accel.occluded(
@@ -78,9 +79,8 @@ impl Attacher<'_> {
 
     /// Step 1 (module doc) for one hit: read-only, against the anchors and photon links
     /// as they are.
-    fn search(&self, set: &AnchorSet, sp: &SurfacePoint) -> Search {
-        let albedo = sp.albedo(self.m);
-        let x = sp.position;
+    fn search(&self, set: &AnchorSet, hit: &AttachPoint) -> Search {
+        let x = hit.position;
         // §3.3.2: the nearest photon's anchor, if it has one.
         // (The search radius has a margin over the test's, which decides, so that the
         // photon found is the one an unbounded search would find and test.)
@@ -88,7 +88,8 @@ impl Attacher<'_> {
         let photon = self
             .pm
             .nearest_within(x, radius * (1.0 + 1e-5))
-            .filter(|&i| (self.pm.photons[i].position - x).length() <= radius);
+            .filter(|&(_, d)| d <= radius)
+            .map(|(i, _)| i);
         let linked = photon.and_then(|ph| set.photon_links[ph]);
         // §3.3.1: D_max, constant or scaled by the importons.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));
@@ -98,7 +99,6 @@ impl Attacher<'_> {
             .unwrap_or(self.params.d_max * self.scale)
             * factor;
         let mut search = Search {
-            albedo,
             photon,
             linked,
             d_max,
@@ -108,7 +108,7 @@ impl Attacher<'_> {
         };
         if let Some(a) = linked
             && set.anchor(a).is_live()
-            && self.acceptable(set, a, sp, albedo)
+            && self.acceptable(set, a, hit)
         {
             search.found = Some(a);
             return search;
@@ -123,7 +123,7 @@ impl Attacher<'_> {
             .iter()
             .map(|&(_, id)| AnchorId(id))
             .filter(|&id| Some(id) != linked)
-            .find(|&id| self.acceptable(set, id, sp, albedo));
+            .find(|&id| self.acceptable(set, id, hit));
         search.near = candidates;
         search
     }
@@ -131,7 +131,7 @@ impl Attacher<'_> {
     /// The anchor an attachment of `sp` would link to among the existing anchors (step 1,
     /// read-only: nothing is made or linked), if one is acceptable.
     pub fn find(&self, set: &AnchorSet, sp: &SurfacePoint) -> Option<AnchorId> {
-        self.search(set, sp).found
+        self.search(set, &AttachPoint::of(sp, self.m)).found
     }
 
     /// Step 2 (module doc) for a hit whose search found no anchor: the anchor its photon
@@ -143,18 +143,18 @@ impl Attacher<'_> {
         &self,
         set: &mut AnchorSet,
         fresh: &mut KdTree,
-        sp: &SurfacePoint,
+        hit: &AttachPoint,
         s: &Search,
     ) -> (AnchorId, bool) {
         let now = s.photon.and_then(|ph| set.photon_links[ph]);
         if let Some(a) = now
             && now != s.linked
             && set.anchor(a).is_live()
-            && self.acceptable(set, a, sp, s.albedo)
+            && self.acceptable(set, a, hit)
         {
             return (a, false);
         }
-        let (created, _) = fresh.search(sp.position, s.d_max, 3, |_| true);
+        let (created, _) = fresh.search(hit.position, s.d_max, 3, |_| true);
         let mut nearest: Vec<(f32, u32, bool)> = s
             .near
             .iter()
@@ -167,12 +167,18 @@ impl Attacher<'_> {
             .iter()
             .filter(|c| c.2)
             .map(|&(_, id, _)| AnchorId(id))
-            .find(|&id| self.acceptable(set, id, sp, s.albedo))
+            .find(|&id| self.acceptable(set, id, hit))
         {
             return (id, false);
         }
         let q = set.quantizer;
-        let id = set.add(Anchor::new(&q, sp.position, sp.ng, s.albedo, Vec3::ZERO));
+        let id = set.add(Anchor::new(
+            &q,
+            hit.position,
+            hit.ng,
+            hit.albedo,
+            Vec3::ZERO,
+        ));
         fresh.insert(set.anchor(id).position(&q), id.0);
         (id, true)
     }
@@ -188,11 +194,17 @@ impl Attacher<'_> {
     ) -> (Vec<AnchorId>, Vec<AnchorId>) {
         // Step 1: search in parallel. A hit's whole search is kept only where it found no
         // anchor (step 2 reads it): most find one, and the batch holds millions.
+        // What the steps read of each hit, gathered in the hits' order: the search visits
+        // them in spatial order, and a whole surface point spans two cache lines.
+        let points: Vec<AttachPoint> = {
+            use rayon::prelude::*;
+            hits.par_iter().map(|sp| AttachPoint::of(sp, self.m)).collect()
+        };
         let searches: Vec<Searched> = {
             let set = &*set;
-            let positions: Vec<Vec3> = hits.iter().map(|sp| sp.position).collect();
+            let positions: Vec<Vec3> = points.iter().map(|p| p.position).collect();
             crate::photon::knn::map_in_query_order(&positions, |i| {
-                let s = self.search(set, hits[i]);
+                let s = self.search(set, &points[i]);
                 Searched {
                     // A photon linked already keeps its anchor (step 3).
                     photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
@@ -211,11 +223,11 @@ impl Attacher<'_> {
         let mut fresh = KdTree::default();
         let mut created = Vec::new();
         let mut ids = Vec::with_capacity(hits.len());
-        for (sp, s) in hits.iter().zip(&searches) {
+        for (hit, s) in points.iter().zip(&searches) {
             let id = match &s.found {
                 Ok(id) => *id,
                 Err(search) => {
-                    let (id, new) = self.create(set, &mut fresh, sp, search);
+                    let (id, new) = self.create(set, &mut fresh, hit, search);
                     if new {
                         created.push(id);
                     }
@@ -266,10 +278,28 @@ struct Searched {
     found: Result<AnchorId, Box<Search>>,
 }
 
+/// What attachment reads of a static gather hit: where it lies (with the error bound of
+/// its position), which way its surface faces, and its albedo.
+struct AttachPoint {
+    position: Vec3,
+    error: Vec3,
+    ng: Vec3,
+    albedo: Vec3,
+}
+
+impl AttachPoint {
+    fn of(sp: &SurfacePoint, m: Materials) -> AttachPoint {
+        AttachPoint {
+            position: sp.position,
+            error: sp.error,
+            ng: sp.ng,
+            albedo: sp.albedo(m),
+        }
+    }
+}
+
 /// What step 1 (module doc) found for one hit.
 struct Search {
-    /// The hit's albedo.
-    albedo: Vec3,
     /// The nearest photon within the photon radius, and the anchor it linked to then.
     photon: Option<usize>,
     linked: Option<AnchorId>,

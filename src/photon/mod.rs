@@ -680,11 +680,14 @@ impl PhotonMap {
     }
 
     /// Index of the photon nearest to `x` within `radius` (and [`PhotonMap::max_radius`]),
-    /// if any: [`PhotonMap::nearest`]'s answer where that lies within `radius`, found
-    /// without searching farther.
-    pub fn nearest_within(&self, x: Vec3, radius: f32) -> Option<usize> {
+    /// if any — [`PhotonMap::nearest`]'s answer where that lies within `radius`, found
+    /// without searching farther — and its distance, `(position − x).length()` to the bit
+    /// (the tree's squared distance sums the same products in the same order).
+    pub fn nearest_within(&self, x: Vec3, radius: f32) -> Option<(usize, f32)> {
         let r = radius.min(self.max_radius);
-        self.tree.nearest_one(x, r * r).map(|nb| nb.1 as usize)
+        self.tree
+            .nearest_one(x, r * r)
+            .map(|(d2, i)| (i as usize, d2.sqrt()))
     }
 
     /// Index of the photon nearest to `x` within [`PhotonMap::max_radius`], if any.

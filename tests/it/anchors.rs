@@ -286,10 +286,12 @@ fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
         .filter_map(|h| h.sp.as_ref())
         .filter(|sp| sp.hit.motion == Motion::Static)
         .collect();
-    // Each hit's nearest photon, as attachment searches it (within the photon radius).
+    // Each hit's nearest photon, as attachment searches it (within the photon radius),
+    // tested by its own position's distance where attachment reads the search's.
     let radius = params.anchors.photon_radius * att.scale;
     let nearest = |x: glam::Vec3| {
         pm.nearest_within(x, radius * (1.0 + 1e-5))
+            .map(|(i, _)| i)
             .filter(|&i| (pm.photons[i].position - x).length() <= radius)
     };
     let before = set.photon_links.clone();
