@@ -608,6 +608,52 @@ fn kept_anchor_estimates_match_fresh_ones() {
     assert_anchors_hold_fresh_estimates(&job, &state, &pm);
 }
 
+/// Each frame links every anchor it begins with to its nearest photon, the lowest anchor
+/// index keeping a photon that several share (§3.3.2; the hits that attach later claim only
+/// photons left unclaimed): the anchors whose L_i was estimated again take the photon from
+/// that search, the others search for it. Measured: caught when the estimate's search
+/// gives the first photon it found instead of the nearest.
+#[test]
+fn anchors_link_their_nearest_photons() {
+    let job = example("anchors", "");
+    let last = 13;
+    let (scene, resources, mut state, _) = state_after(&job, 10..last);
+    let q = state.anchors.as_ref().unwrap().quantizer;
+    let place = |a: &anchorage::anchor::Anchor| (a.position(&q).to_array(), a.normal().to_array());
+    let before: Vec<_> = state
+        .anchors
+        .as_ref()
+        .unwrap()
+        .anchors
+        .iter()
+        .map(|a| a.is_live().then(|| place(a)))
+        .collect();
+    let mut st = pipeline::new_stats(&job, last);
+    pipeline::render_frame(&job, &scene, &resources, &mut state, last, &mut st).unwrap();
+    let c = &st.counts;
+    assert!(
+        c.anchors_reestimated > 100 && c.anchors_reestimated + 100 < c.anchors,
+        "{c:?}"
+    );
+    let (_, pm) = frame_photons(&job, &scene, &resources, last);
+    let set = state.anchors.as_ref().unwrap();
+    // The anchors there before the frame, each to its nearest photon (anchors are freed
+    // only at a frame's end, so these are the anchors the frame began with; a link to one
+    // freed since stays, and attachment ignores it).
+    let mut want = std::collections::BTreeMap::new();
+    for (i, p) in before.iter().enumerate() {
+        if let Some((position, _)) = p
+            && let Some(ph) = pm.nearest(glam::Vec3::from_array(*position))
+        {
+            want.entry(ph).or_insert(i as u32);
+        }
+    }
+    assert!(want.len() > 1000, "{} photons linked", want.len());
+    for (&ph, &i) in &want {
+        assert_eq!(set.photon_links[ph].map(|a| a.0), Some(i), "photon {ph}");
+    }
+}
+
 /// Every live anchor of `state` holds what a fresh estimate from `pm` at it gives (to
 /// RGBE's precision).
 fn assert_anchors_hold_fresh_estimates(
