@@ -179,6 +179,14 @@ impl Attacher<'_> {
             hit.albedo,
             Vec3::ZERO,
         ));
+        // Where its L_i is searched first (step 3): a nearby anchor's reach, widened by the
+        // distance between the two (and the new one's quantisation), takes in that anchor's
+        // whole disc, which held k photons when it was estimated.
+        let near = s.near.iter().map(|&(d2, other)| {
+            let r = set.reach2(AnchorId(other)).sqrt() + d2.sqrt() + q.max_error();
+            r * r
+        });
+        set.set_reach(id, near.fold(f32::INFINITY, f32::min));
         fresh.insert(set.anchor(id).position(&q), id.0);
         (id, true)
     }
@@ -198,7 +206,9 @@ impl Attacher<'_> {
         // them in spatial order, and a whole surface point spans two cache lines.
         let points: Vec<AttachPoint> = {
             use rayon::prelude::*;
-            hits.par_iter().map(|sp| AttachPoint::of(sp, self.m)).collect()
+            hits.par_iter()
+                .map(|sp| AttachPoint::of(sp, self.m))
+                .collect()
         };
         let searches: Vec<Searched> = {
             let set = &*set;
@@ -248,6 +258,8 @@ impl Attacher<'_> {
     /// Step 3 (module doc) for the anchors `created`: their L_i, estimated
     /// where each anchor is stored (quantised position and normal), exactly as later frames
     /// re-estimate it: the normal test against photons can tip on a fraction of a degree.
+    /// The search looks first within the reach step 2 set from a nearby anchor's
+    /// ([`PhotonMap::irradiance_and_radius_near`]; unbounded where none was near).
     pub fn estimate_created(&self, set: &mut AnchorSet, created: &[AnchorId]) {
         let q = set.quantizer;
         let k = self.params.anchor_k(self.k);
@@ -259,7 +271,9 @@ impl Attacher<'_> {
                 .collect();
             crate::photon::knn::map_in_query_order(&positions, |i| {
                 let a = set.anchor(created[i]);
-                self.pm.irradiance_and_radius(positions[i], a.normal(), k)
+                let reach = set.reach2(created[i]);
+                self.pm
+                    .irradiance_and_radius_near(positions[i], a.normal(), k, reach)
             })
         };
         for (&id, (e, r2)) in created.iter().zip(estimates) {

@@ -61,6 +61,13 @@ pub struct PhotonPaths {
     pub tree: KeptTree,
 }
 
+/// How much farther a k-nearest search looks again, in squared radius, where fewer than k
+/// photons lie within the reach it was first given
+/// ([`PhotonMap::irradiance_radius_and_nearest_near`]): an anchor whose reach lost a photon
+/// or two finds its k-th just beyond it, and a search bounded there visits less of the tree
+/// than an unbounded one.
+pub const RETRY_REACH2: f32 = 1.5;
+
 /// A kd-tree kept beside the photons it was built over ([`PhotonPaths::tree`]): derived
 /// data, so two are always equal (the photons they index decide).
 #[derive(Debug, Clone, Default)]
@@ -552,11 +559,12 @@ impl PhotonMap {
     }
 
     /// [`PhotonMap::irradiance_and_radius`] searched first within `r2_near` (an earlier
-    /// estimate's reach at the same point; infinite: none), with the index of the photon
-    /// nearest to `x` ([`PhotonMap::nearest`]'s answer). Where at least `k` photons lie
-    /// within `r2_near`, they are the `k` nearest, found without the unbounded search's
-    /// first visits; elsewhere (fewer photons there now) the search runs unbounded. The
-    /// nearest photon is the nearest of those found (by squared distance, then index, as
+    /// estimate's reach at the same point, or a bound that should hold `k` photons;
+    /// infinite: none), with the index of the photon nearest to `x`
+    /// ([`PhotonMap::nearest`]'s answer). Where at least `k` photons lie within `r2_near`,
+    /// they are the `k` nearest, found without the unbounded search's first visits; where
+    /// fewer do (photons moved away since), the search looks again within [`RETRY_REACH2`]
+    /// times `r2_near`, and only then unbounded. The nearest photon is the nearest of those found (by squared distance, then index, as
     /// [`knn::PointTree::nearest_one`] ranks them), so an anchor's re-estimate also tells
     /// which photon it links (§3.3.2) without a search of its own.
     pub fn irradiance_radius_and_nearest_near(
@@ -582,15 +590,29 @@ impl PhotonMap {
             }
             (e, r2, nearest.map(|(_, pos)| self.tree.item(pos) as usize))
         };
-        if r2_near < r2_max {
-            let near = self.tree.nearest_within(x, r2_near, k, |found| {
-                (found.len() >= k).then(|| answer(found))
-            });
-            if let Some(e) = near {
-                return e;
+        for bound in [r2_near, r2_near * RETRY_REACH2] {
+            if bound < r2_max {
+                let near = self.tree.nearest_within(x, bound, k, |found| {
+                    (found.len() >= k).then(|| answer(found))
+                });
+                if let Some(e) = near {
+                    return e;
+                }
             }
         }
         self.tree.nearest_within(x, r2_max, k, answer)
+    }
+
+    /// [`PhotonMap::irradiance_radius_and_nearest_near`] without the nearest photon.
+    pub fn irradiance_and_radius_near(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        k: usize,
+        r2_near: f32,
+    ) -> (Vec3, f32) {
+        let (e, r2, _) = self.irradiance_radius_and_nearest_near(x, n, k, r2_near);
+        (e, r2)
     }
 
     /// The estimate at `x` from the `found` photons (the k nearest within `r2_max`).
