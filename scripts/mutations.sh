@@ -41,6 +41,8 @@ declare -A TESTS=(
   [untouched-test-short]="anchors::kept_anchor_estimates"
   [dynamic-radiance-misplaced]="anchor_faults anchors::"
   [references-one-share]="anchors::"
+  [relink-first-found]="anchors::anchors_link_their_nearest_photons"
+  [retry-takes-fewer]="anchors::searches_bounded"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -48,7 +50,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   replay-reads-without-key replay-emitters-without-pick-check slack-near-dynamic slack-ignored
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
-  references-one-share)
+  references-one-share relink-first-found retry-takes-fewer)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

@@ -654,6 +654,50 @@ fn anchors_link_their_nearest_photons() {
     }
 }
 
+/// A search for L_i first bounded by a reach finds the k photons the unbounded search
+/// finds, whatever the reach: one too small for k photons (searched again within
+/// `RETRY_REACH2` times it — 0.8 of the true squared reach, where that holds them, and
+/// 0.5, where it does not and the search goes unbounded), the true one, a larger one,
+/// none. The same photons give the same squared reach, to the bit, and the same estimate
+/// up to the order of its sums; the nearest photon is `PhotonMap::nearest`'s. At the
+/// photons of the example room's frame 10, on their own surfaces. Measured: caught when
+/// the search again within the larger reach accepts half of k photons.
+#[test]
+fn searches_bounded_by_any_reach_find_the_unbounded_ones_photons() {
+    use anchorage::photon::RETRY_REACH2;
+    let job = example("anchors", "");
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let (_, pm) = frame_photons(&job, &scene, &resources, 10);
+    let params = job.method.params();
+    let k = params.anchors.anchor_k(params.k as usize);
+    let r2_max = pm.max_radius * pm.max_radius;
+    let (mut checked, mut retried) = (0, 0);
+    for p in pm.photons.iter().step_by(97).take(300) {
+        let (x, n) = (p.position, p.normal);
+        let (e, r2) = pm.irradiance_and_radius(x, n, k);
+        if r2 >= r2_max {
+            continue; // fewer than k photons within the maximum radius
+        }
+        for near in [0.5 * r2, 0.8 * r2, r2, 3.0 * r2, f32::INFINITY] {
+            let (e2, r2b, ph) = pm.irradiance_radius_and_nearest_near(x, n, k, near);
+            assert_eq!(r2b, r2, "at {x}, first within {near} of {r2}");
+            let tolerance = 1e-5 * e.max_element();
+            assert!(
+                (e2 - e).abs().max_element() <= tolerance,
+                "at {x}: {e2} against {e}"
+            );
+            assert_eq!(ph, pm.nearest(x), "at {x}");
+            retried += usize::from(near < r2 && near * RETRY_REACH2 >= r2);
+        }
+        checked += 1;
+    }
+    assert!(
+        checked >= 200 && retried >= 200,
+        "{checked} points, {retried} retried"
+    );
+}
+
 /// Every live anchor of `state` holds what a fresh estimate from `pm` at it gives (to
 /// RGBE's precision).
 fn assert_anchors_hold_fresh_estimates(
