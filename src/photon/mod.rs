@@ -526,10 +526,6 @@ impl PhotonMap {
         self.irradiance_and_radius(x, n, k).0
     }
 
-    /// [`PhotonMap::irradiance`] and the squared radius of the disc it gathered over: the
-    /// estimate depends on no photon farther away. The disc reaches the k-th nearest photon
-    /// within [`PhotonMap::max_radius`], or that radius where fewer lie within it; the
-    /// estimate divides by the part of it on the query's surface ([`SurfaceClip`]).
     /// The photons, path by path, with the kd-tree over them (what the next frame's map
     /// compares with and may reuse).
     pub fn paths(&self) -> PhotonPaths {
@@ -551,6 +547,10 @@ impl PhotonMap {
             .is_some_and(|t| Arc::ptr_eq(t, &self.tree))
     }
 
+    /// [`PhotonMap::irradiance`] and the squared radius of the disc it gathered over: the
+    /// estimate depends on no photon farther away. The disc reaches the k-th nearest photon
+    /// within [`PhotonMap::max_radius`], or that radius where fewer lie within it; the
+    /// estimate divides by the part of it on the query's surface ([`SurfaceClip`]).
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);
@@ -564,9 +564,10 @@ impl PhotonMap {
     /// ([`PhotonMap::nearest`]'s answer). Where at least `k` photons lie within `r2_near`,
     /// they are the `k` nearest, found without the unbounded search's first visits; where
     /// fewer do (photons moved away since), the search looks again within [`RETRY_REACH2`]
-    /// times `r2_near`, and only then unbounded. The nearest photon is the nearest of those found (by squared distance, then index, as
-    /// [`knn::PointTree::nearest_one`] ranks them), so an anchor's re-estimate also tells
-    /// which photon it links (§3.3.2) without a search of its own.
+    /// times `r2_near`, and only then unbounded. The nearest photon is the nearest of those
+    /// found (by squared distance, then index, as [`knn::PointTree::nearest_one`] ranks
+    /// them), so an anchor's re-estimate also tells which photon it links (§3.3.2) without
+    /// a search of its own.
     pub fn irradiance_radius_and_nearest_near(
         &self,
         x: Vec3,
