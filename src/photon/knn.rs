@@ -117,6 +117,22 @@ impl PointTree {
         best
     }
 
+    /// The index of the nearest of `found` (as [`PointTree::nearest_within`] gives them),
+    /// ranked as every query here ranks points: by squared distance, then index. It is
+    /// [`PointTree::nearest_one`]'s answer wherever `found` holds the point nearest to the
+    /// query, as the k nearest within any bound that holds one do.
+    pub fn nearest_of(&self, found: &[Neighbour]) -> Option<u32> {
+        // The least squared distance first; indices only break its ties.
+        let mut nearest: Option<Neighbour> = None;
+        for &(d2, pos) in found {
+            if nearest.is_none_or(|(b2, b)| d2 < b2 || (d2 == b2 && self.item(pos) < self.item(b)))
+            {
+                nearest = Some((d2, pos));
+            }
+        }
+        nearest.map(|(_, pos)| self.item(pos))
+    }
+
     /// Whether a point lies at squared distance at most `r2_max` from `x` (the answer of
     /// [`PointTree::nearest_one`]`.is_some()`; the search stops at the first it finds).
     pub fn any_within(&self, x: Vec3, r2_max: f32) -> bool {
@@ -409,6 +425,8 @@ mod tests {
                     let want = brute(&points, x, r2, k);
                     let got = tree.nearest_within(x, r2, k, |f| indexed(&tree, f));
                     assert_eq!(got, want, "query {q} at {x}, k {k}, r2 {r2}");
+                    let nearest = tree.nearest_within(x, r2, k, |f| tree.nearest_of(f));
+                    assert_eq!(nearest, want.first().map(|e| e.1), "query {q} at {x}");
                 }
             }
             let r2 = 0.04;

@@ -63,7 +63,7 @@ pub struct PhotonPaths {
 
 /// How much farther a k-nearest search looks again, in squared radius, where fewer than k
 /// photons lie within the reach it was first given
-/// ([`PhotonMap::irradiance_radius_and_nearest_near`]): an anchor whose reach lost a photon
+/// ([`PhotonMap::irradiance_and_radius_near`]): an anchor whose reach lost a photon
 /// or two finds its k-th just beyond it, and a search bounded there visits less of the tree
 /// than an unbounded one.
 pub const RETRY_REACH2: f32 = 1.5;
@@ -560,14 +560,26 @@ impl PhotonMap {
 
     /// [`PhotonMap::irradiance_and_radius`] searched first within `r2_near` (an earlier
     /// estimate's reach at the same point, or a bound that should hold `k` photons;
-    /// infinite: none), with the index of the photon nearest to `x`
-    /// ([`PhotonMap::nearest`]'s answer). Where at least `k` photons lie within `r2_near`,
-    /// they are the `k` nearest, found without the unbounded search's first visits; where
-    /// fewer do (photons moved away since), the search looks again within [`RETRY_REACH2`]
-    /// times `r2_near`, and only then unbounded. The nearest photon is the nearest of those
-    /// found (by squared distance, then index, as [`knn::PointTree::nearest_one`] ranks
-    /// them), so an anchor's re-estimate also tells which photon it links (§3.3.2) without
-    /// a search of its own.
+    /// infinite: none). Where at least `k` photons lie within `r2_near`, they are the `k`
+    /// nearest, found without the unbounded search's first visits; where fewer do (photons
+    /// moved away since), the search looks again within [`RETRY_REACH2`] times `r2_near`,
+    /// and only then unbounded.
+    pub fn irradiance_and_radius_near(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        k: usize,
+        r2_near: f32,
+    ) -> (Vec3, f32) {
+        let r2_max = self.max_radius * self.max_radius;
+        let k = k.max(1);
+        self.search_near(x, k, r2_near, |found| self.estimate(x, n, k, r2_max, found))
+    }
+
+    /// [`PhotonMap::irradiance_and_radius_near`] with the index of the photon nearest to
+    /// `x` ([`PhotonMap::nearest`]'s answer): the nearest of the `k` found
+    /// ([`knn::PointTree::nearest_of`]), so an anchor's re-estimate also tells which photon
+    /// it links (§3.3.2) without a search of its own.
     pub fn irradiance_radius_and_nearest_near(
         &self,
         x: Vec3,
@@ -577,20 +589,23 @@ impl PhotonMap {
     ) -> (Vec3, f32, Option<usize>) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);
-        let answer = |found: &[knn::Neighbour]| {
+        self.search_near(x, k, r2_near, |found| {
             let (e, r2) = self.estimate(x, n, k, r2_max, found);
-            // The least squared distance first; indices only break its ties.
-            let mut nearest: Option<knn::Neighbour> = None;
-            for &(d2, pos) in found {
-                let closer = nearest.is_none_or(|(b2, b)| {
-                    d2 < b2 || (d2 == b2 && self.tree.item(pos) < self.tree.item(b))
-                });
-                if closer {
-                    nearest = Some((d2, pos));
-                }
-            }
-            (e, r2, nearest.map(|(_, pos)| self.tree.item(pos) as usize))
-        };
+            (e, r2, self.tree.nearest_of(found).map(|i| i as usize))
+        })
+    }
+
+    /// `answer` for the `k` photons nearest to `x` (`k` ≥ 1), searched first within
+    /// `r2_near`, then within [`RETRY_REACH2`] times it, then unbounded (up to
+    /// [`PhotonMap::max_radius`]); a bounded search counts only where it found `k`.
+    fn search_near<R>(
+        &self,
+        x: Vec3,
+        k: usize,
+        r2_near: f32,
+        answer: impl Fn(&[knn::Neighbour]) -> R,
+    ) -> R {
+        let r2_max = self.max_radius * self.max_radius;
         for bound in [r2_near, r2_near * RETRY_REACH2] {
             if bound < r2_max {
                 let near = self.tree.nearest_within(x, bound, k, |found| {
@@ -602,18 +617,6 @@ impl PhotonMap {
             }
         }
         self.tree.nearest_within(x, r2_max, k, answer)
-    }
-
-    /// [`PhotonMap::irradiance_radius_and_nearest_near`] without the nearest photon.
-    pub fn irradiance_and_radius_near(
-        &self,
-        x: Vec3,
-        n: Vec3,
-        k: usize,
-        r2_near: f32,
-    ) -> (Vec3, f32) {
-        let (e, r2, _) = self.irradiance_radius_and_nearest_near(x, n, k, r2_near);
-        (e, r2)
     }
 
     /// The estimate at `x` from the `found` photons (the k nearest within `r2_max`).
