@@ -158,6 +158,7 @@ pub fn render_frame_with(
             t.photon_tracing = gs.photon_tracing;
             t.irradiance_estimation = gs.irradiance_estimation;
             t.attachment = gs.attachment;
+            t.integration = gs.integration;
             t.final_gathering = gs.final_gathering;
             t.cache_interpolation = gs.cache_interpolation;
             t.depth_maps = gs.depth_maps;

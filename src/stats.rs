@@ -19,9 +19,8 @@ pub struct Timings {
     pub static_bvh: f64,
     pub dynamic_bvh: f64,
     /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
-    /// gather hits, or precomputation; for `anchors` the L_i of anchors, new and re-estimated,
-    /// and the records re-made from them), final gathering (tracing gather rays) and cache
-    /// interpolation (shading from the cache, glossy bucketing and reflection rays
+    /// gather hits, or precomputation; for `anchors` the L_i of anchors, new and
+    /// re-estimated), final gathering (tracing gather rays) and cache interpolation (shading from the cache, glossy bucketing and reflection rays
     /// included). Pixel samples no record covers gather on the spot: their rays count as
     /// final gathering, their photon look-ups (`anchors`: anchor searches) as irradiance
     /// estimation, not as interpolation. Zero for methods without that stage.
@@ -34,6 +33,13 @@ pub struct Timings {
     /// its ray is shot); here it is a row of its own, apart from the rays.
     #[serde(default)]
     pub attachment: f64,
+    /// The cached methods: integrating each record's strata into its irradiance, gradients
+    /// and directional fit (`anchors`: and its dominant anchor), for new records and those
+    /// whose strata changed. In the paper's Table 1 it would fall under final gathering
+    /// (Pseudocode 2 reads each stratum's L_i in its loop over the strata); here it is a
+    /// row of its own, so that final gathering is the rays' tracing.
+    #[serde(default)]
+    pub integration: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).

@@ -100,8 +100,13 @@ pub fn estimate_all(
 pub struct GatherTimings {
     /// Tracing gather rays.
     pub final_gathering: f64,
-    /// Estimating radiance at gather hits (photon lookups).
+    /// Estimating radiance at gather hits (photon lookups); `anchors`: the anchors' L_i.
     pub irradiance_estimation: f64,
+    /// Integrating each record's strata into its irradiance, gradients and directional fit
+    /// (`anchors`: and its dominant anchor). The paper's Table 1 would count it as final
+    /// gathering, whose loop over a record's strata reads each one's L_i (Pseudocode 2);
+    /// here it is kept apart from the rays, so that their rate is the tracing's.
+    pub integration: f64,
     /// `anchors`: linking gather hits to anchors (Pseudocode 1's search and new anchors).
     pub attachment: f64,
     pub rays: u64,
@@ -113,6 +118,13 @@ impl GatherTimings {
     pub fn linked(&mut self, seconds: f64) {
         self.irradiance_estimation -= seconds;
         self.attachment += seconds;
+    }
+
+    /// Moves `seconds` of integrating records' strata, timed inside a phase that counted as
+    /// irradiance estimation, to `integration`.
+    pub fn integrated(&mut self, seconds: f64) {
+        self.irradiance_estimation -= seconds;
+        self.integration += seconds;
     }
 }
 

@@ -613,13 +613,15 @@ impl IrradianceCache {
         let t1 = std::time::Instant::now();
         let footprints: Vec<f32> = self.records.iter().map(|r| r.footprint).collect();
         let resolved = resolve(&footprints, hits);
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        let t2 = std::time::Instant::now();
         let updated: Vec<Record> = self
             .records
             .par_iter()
             .zip(resolved)
             .map(|(r, (strata, rad))| r.with_strata(strata, &rad, p, frame_number))
             .collect();
-        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        timings.integration += t2.elapsed().as_secs_f64();
         self.records = updated;
         self.rebuild_tree();
     }
@@ -828,6 +830,8 @@ impl IrradianceCache {
             .map(|(_, sp)| pixel_footprint(&frame.camera, sp.position, height))
             .collect();
         let resolved = resolve(&footprints, hits);
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        let t2 = std::time::Instant::now();
         let records: Vec<Record> = points
             .par_iter()
             .zip(resolved)
@@ -846,7 +850,7 @@ impl IrradianceCache {
                 )
             })
             .collect();
-        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        timings.integration += t2.elapsed().as_secs_f64();
         self.append(records);
     }
 

@@ -54,6 +54,8 @@ pub struct Table1 {
     pub irradiance_estimation: f64,
     /// `anchors`: linking gather hits to anchors (the stats' `attachment`).
     pub attachment: f64,
+    /// Integrating records' strata (the stats' `integration`).
+    pub integration: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     pub direct_lighting: f64,
@@ -241,6 +243,7 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
             photon_tracing: med(&|s| s.timings_s.photon_tracing),
             irradiance_estimation: med(&|s| s.timings_s.irradiance_estimation),
             attachment: med(&|s| s.timings_s.attachment),
+            integration: med(&|s| s.timings_s.integration),
             final_gathering: med(&|s| s.timings_s.final_gathering),
             cache_interpolation: med(&|s| s.timings_s.cache_interpolation),
             direct_lighting: med(&|s| s.timings_s.direct_lighting),
@@ -251,6 +254,7 @@ pub(super) fn score(v: &Variant, r: &Run, reference: &Run) -> Score {
                     - (t.photon_tracing
                         + t.irradiance_estimation
                         + t.attachment
+                        + t.integration
                         + t.final_gathering
                         + t.cache_interpolation
                         + t.direct_lighting
@@ -319,6 +323,7 @@ pub(super) fn sample(n: usize) -> Report {
                     photon_tracing: 0.01,
                     irradiance_estimation: 0.02,
                     attachment: 0.03,
+                    integration: 0.005,
                     final_gathering: 0.1,
                     cache_interpolation: 0.01,
                     direct_lighting: 0.02,

@@ -48,12 +48,13 @@ pub fn table(r: &Report) -> String {
     }
     s += "RMS*% and ind.err*%: the same errors less the reference's own noise (its per-pixel variance)\n";
     s += &format!(
-        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8} {:>8}\n",
+        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8} {:>8}\n",
         rayon::current_num_threads(),
         "method/preset",
         "photons",
         "irr.est",
         "attach",
+        "integr",
         "gather",
         "interp",
         "direct",
@@ -68,11 +69,12 @@ pub fn table(r: &Report) -> String {
     for x in &r.results {
         let t = &x.table1_s;
         s += &format!(
-            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8} {:>8}\n",
+            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8} {:>8}\n",
             x.label,
             t.photon_tracing,
             t.irradiance_estimation,
             t.attachment,
+            t.integration,
             t.final_gathering,
             t.cache_interpolation,
             t.direct_lighting,
@@ -119,8 +121,8 @@ mod tests {
         assert_eq!(
             lines[7..9],
             [
-                "method/preset                             photons  irr.est   attach   gather   interp   direct   visib.    other    total gather rays/s/core  reshot%    flag%  vis/10k",
-                "anchors/production photons=10000            0.010    0.020    0.030    0.100    0.010    0.020    0.000    0.040    0.200         2.00 M      n/a      n/a      n/a",
+                "method/preset                             photons  irr.est   attach   integr   gather   interp   direct   visib.    other    total gather rays/s/core  reshot%    flag%  vis/10k",
+                "anchors/production photons=10000            0.010    0.020    0.030    0.005    0.100    0.010    0.020    0.000    0.040    0.200         2.00 M      n/a      n/a      n/a",
             ]
         );
     }

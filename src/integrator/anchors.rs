@@ -508,7 +508,7 @@ fn reshoot_and_update(
     }
     let t = Instant::now();
     let mut linking = 0.0;
-    update_records(
+    let integrating = update_records(
         att,
         set,
         cache,
@@ -521,6 +521,7 @@ fn reshoot_and_update(
     );
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
     timings.linked(linking);
+    timings.integrated(integrating);
     rays
 }
 
@@ -601,7 +602,8 @@ fn reshoot(
 /// Re-makes every existing record from its strata: the re-shot ones resolved anew, the
 /// others reading their anchors' current L_i. A record with no stratum re-shot whose anchors
 /// all keep their L_i (`changed`, by anchor index, says which were estimated again) would
-/// come out the same, and is kept as it is.
+/// come out the same, and is kept as it is. Returns the seconds spent integrating the
+/// records' strata (irradiance, gradients, directional fit, dominant anchor).
 #[allow(clippy::too_many_arguments)] // the anchors, the cache and this frame's changes to both
 fn update_records(
     att: &Attacher,
@@ -613,7 +615,7 @@ fn update_records(
     cp: &CacheParams,
     frame: i32,
     linking: &mut f64,
-) {
+) -> f64 {
     let footprints: Vec<f32> = cache.records.iter().map(|r| r.footprint).collect();
     let previous: Vec<Vec<Stratum>> = cache
         .records
@@ -625,6 +627,7 @@ fn update_records(
     // Each anchor's radiance, decoded once for the many strata that read it.
     let radiance: Vec<Vec3> = set.anchors.par_iter().map(|a| a.radiance()).collect();
     let with: Vec<_> = resolved.into_iter().zip(todo).collect();
+    let t = Instant::now();
     cache.update_each(with, |r, ((new_strata, new_rad), list)| {
         let same = list.is_empty()
             && r.strata.iter().all(|s| {
@@ -647,6 +650,7 @@ fn update_records(
         new.dominant_anchor = dominant(&new.strata, &rad);
         *r = new;
     });
+    t.elapsed().as_secs_f64()
 }
 
 /// New records where the image needs them (at the camera samples' lookup `samples` too);
@@ -678,6 +682,7 @@ fn place_records(
         );
     }
     timings.linked(linking);
+    let t = Instant::now();
     let set = &*set;
     cache.records[first_new..].par_iter_mut().for_each(|r| {
         let rad: Vec<Vec3> = r
@@ -687,6 +692,7 @@ fn place_records(
             .collect();
         r.dominant_anchor = dominant(&r.strata, &rad);
     });
+    timings.integration += t.elapsed().as_secs_f64();
 }
 
 /// The radiance each stratum reads from its anchor (zero where it links none), from each

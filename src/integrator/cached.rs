@@ -97,6 +97,8 @@ pub struct CachedStats {
     pub irradiance_estimation: f64,
     /// `anchors`: linking gather hits to anchors ([`crate::anchor::attach`]).
     pub attachment: f64,
+    /// Integrating records' strata ([`crate::cache::GatherTimings::integration`]).
+    pub integration: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     /// Answering anchor bucketing's depth queries (§5.1), wherever visibility runs.
@@ -246,6 +248,7 @@ pub fn render_in_bands(
     st.final_gathering = gt.final_gathering;
     st.irradiance_estimation += gt.irradiance_estimation;
     st.attachment = gt.attachment;
+    st.integration = gt.integration;
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
     st.caches_spot = cache.records.iter().filter(|r| r.spot).count() as u64;

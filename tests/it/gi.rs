@@ -441,6 +441,7 @@ fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
                 + t.photon_tracing
                 + t.irradiance_estimation
                 + t.attachment
+                + t.integration
                 + t.final_gathering
                 + t.cache_interpolation
                 + t.visibility
@@ -451,6 +452,8 @@ fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
             // irradiance estimation.
             assert_eq!(t.attachment > 0.0, method == "anchors", "{method}: {t:?}");
             assert!(t.irradiance_estimation > 0.0, "{method}: {t:?}");
+            // Every frame integrates records: new ones, and brute force's all again.
+            assert!(t.integration > 0.0, "{method}: {t:?}");
             assert!(
                 rows <= elapsed,
                 "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
