@@ -43,6 +43,7 @@ declare -A TESTS=(
   [references-one-share]="anchors::"
   [relink-first-found]="anchors::anchors_link_their_nearest_photons"
   [retry-takes-fewer]="anchors::searches_bounded"
+  [integration-untimed]="gi::uncached_samples_count"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -50,7 +51,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   replay-reads-without-key replay-emitters-without-pick-check slack-near-dynamic slack-ignored
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
-  references-one-share relink-first-found retry-takes-fewer)
+  references-one-share relink-first-found retry-takes-fewer integration-untimed)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
