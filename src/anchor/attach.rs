@@ -99,7 +99,7 @@ impl Attacher<'_> {
             .unwrap_or(self.params.d_max * self.scale)
             * factor;
         let mut search = Search {
-            albedo: hit.albedo,
+            hit: *hit,
             photon,
             linked,
             d_max,
@@ -140,13 +140,8 @@ impl Attacher<'_> {
     /// D_max of the anchors before this batch (all rejected in step 1) and those this batch
     /// created (`fresh`, a tree of their ids), as one by one; else a new anchor (its L_i
     /// estimated later, in step 3), which goes into `fresh`.
-    fn create(
-        &self,
-        set: &mut AnchorSet,
-        fresh: &mut KdTree,
-        hit: &AttachPoint,
-        s: &Search,
-    ) -> (AnchorId, bool) {
+    fn create(&self, set: &mut AnchorSet, fresh: &mut KdTree, s: &Search) -> (AnchorId, bool) {
+        let hit = &s.hit;
         let now = s.photon.and_then(|ph| set.photon_links[ph]);
         if let Some(a) = now
             && now != s.linked
@@ -235,12 +230,11 @@ impl Attacher<'_> {
         let mut fresh = KdTree::default();
         let mut created = Vec::new();
         let mut ids = Vec::with_capacity(hits.len());
-        for (sp, s) in hits.iter().zip(&searches) {
+        for s in &searches {
             let id = match &s.found {
                 Ok(id) => *id,
                 Err(search) => {
-                    let hit = AttachPoint::with_albedo(sp, search.albedo);
-                    let (id, new) = self.create(set, &mut fresh, &hit, search);
+                    let (id, new) = self.create(set, &mut fresh, search);
                     if new {
                         created.push(id);
                     }
@@ -297,6 +291,7 @@ struct Searched {
 
 /// What attachment reads of a static gather hit: where it lies (with the error bound of
 /// its position), which way its surface faces, and its albedo.
+#[derive(Clone, Copy)]
 struct AttachPoint {
     position: Vec3,
     error: Vec3,
@@ -306,15 +301,11 @@ struct AttachPoint {
 
 impl AttachPoint {
     fn of(sp: &SurfacePoint, m: Materials) -> AttachPoint {
-        AttachPoint::with_albedo(sp, sp.albedo(m))
-    }
-
-    fn with_albedo(sp: &SurfacePoint, albedo: Vec3) -> AttachPoint {
         AttachPoint {
             position: sp.position,
             error: sp.error,
             ng: sp.ng,
-            albedo,
+            albedo: sp.albedo(m),
         }
     }
 }
@@ -325,8 +316,8 @@ const SEARCH_SHARE: usize = 1 << 18;
 
 /// What step 1 (module doc) found for one hit.
 struct Search {
-    /// The hit's albedo (step 2 reads it again).
-    albedo: Vec3,
+    /// What the search read of the hit (step 2 reads it again).
+    hit: AttachPoint,
     /// The nearest photon within the photon radius, and the anchor it linked to then.
     photon: Option<usize>,
     linked: Option<AnchorId>,
