@@ -360,14 +360,14 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet, at: &AnchorPlaces
 /// the same photons and the same value: it keeps it, and only the others are estimated
 /// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated;
 /// per anchor, whether its L_i may differ from the last frame's (estimated again, or a free
-/// slot that a new anchor may fill); and per anchor estimated again, its nearest photon
-/// (`Some(None)`: none within the photon map's maximum radius), which the search found.
+/// slot that a new anchor may fill); and per anchor, what the search found of its nearest
+/// photon.
 fn reestimate_anchors(
     set: &mut AnchorSet,
     pm: &PhotonMap,
     anchor_k: usize,
     at: &AnchorPlaces,
-) -> (u64, Vec<bool>, Vec<Option<Option<u32>>>) {
+) -> (u64, Vec<bool>, Vec<NearestPhoton>) {
     let changed = pm.changed_since(&set.previous_photons);
     // Where most photons changed (a light or a material edited, a first frame), nearly
     // every anchor is reached by one: each is estimated again without the test.
@@ -400,7 +400,7 @@ fn reestimate_anchors(
                 .then(|| pm.irradiance_radius_and_nearest_near(x, a.normal(), anchor_k, r2_near))
         });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
-    let mut nearest = vec![None; set.anchors.len()];
+    let mut nearest = vec![NearestPhoton::Unknown; set.anchors.len()];
     let mut count = 0;
     for (i, e) in fresh.into_iter().enumerate() {
         if let Some((e, r2, ph)) = e {
@@ -408,11 +408,21 @@ fn reestimate_anchors(
             set.anchor_mut(id).set_irradiance(e);
             set.set_reach(id, r2);
             changed[i] = true;
-            nearest[i] = Some(ph.map(|ph| ph as u32));
+            nearest[i] = NearestPhoton::Searched(ph.map(|ph| ph as u32));
             count += 1;
         }
     }
     (count, changed, nearest)
+}
+
+/// An anchor's nearest photon (§3.3.2), as this frame's re-estimate of L_i left it.
+#[derive(Debug, Clone, Copy)]
+enum NearestPhoton {
+    /// Not estimated again: still to be searched for.
+    Unknown,
+    /// Found by the estimate's search (`None`: no photon within the photon map's maximum
+    /// radius).
+    Searched(Option<u32>),
 }
 
 /// The anchors' decoded positions and their Morton order ([`crate::photon::knn::query_order`]),
@@ -435,12 +445,7 @@ impl AnchorPlaces {
 /// nearest photon to it (§3.3.2: the first anchor claiming a photon keeps it). `known` holds
 /// the nearest photon of the anchors whose L_i was estimated again this frame
 /// ([`reestimate_anchors`]); the others' is searched for.
-fn relink_photons(
-    set: &mut AnchorSet,
-    pm: &PhotonMap,
-    at: &AnchorPlaces,
-    known: &[Option<Option<u32>>],
-) {
+fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap, at: &AnchorPlaces, known: &[NearestPhoton]) {
     set.previous_photons = pm.paths();
     set.photon_links = vec![None; pm.photons.len()];
     let positions = &at.positions;
@@ -449,8 +454,8 @@ fn relink_photons(
             return None;
         }
         match known[i] {
-            Some(ph) => ph.map(|ph| ph as usize),
-            None => pm.nearest(positions[i]),
+            NearestPhoton::Searched(ph) => ph.map(|ph| ph as usize),
+            NearestPhoton::Unknown => pm.nearest(positions[i]),
         }
     });
     for (i, ph) in nearest.into_iter().enumerate() {
