@@ -20,10 +20,11 @@ pub struct Timings {
     pub dynamic_bvh: f64,
     /// The paper's Table 1 rows: photon tracing, irradiance estimation (photon lookups at
     /// gather hits, or precomputation; for `anchors` the L_i of anchors, new and
-    /// re-estimated), final gathering (tracing gather rays) and cache interpolation (shading from the cache, glossy bucketing and reflection rays
-    /// included). Pixel samples no record covers gather on the spot: their rays count as
-    /// final gathering, their photon look-ups (`anchors`: anchor searches) as irradiance
-    /// estimation, not as interpolation. Zero for methods without that stage.
+    /// re-estimated), final gathering (tracing gather rays) and cache interpolation
+    /// (shading from the cache, glossy bucketing and reflection rays included). Pixel
+    /// samples no record covers gather on the spot: their rays count as final gathering,
+    /// their photon look-ups (`anchors`: anchor searches) as irradiance estimation, not as
+    /// interpolation. Zero for methods without that stage.
     pub photon_tracing: f64,
     pub irradiance_estimation: f64,
     /// `anchors`: linking the gather hits of new records and re-shot strata to anchors
