@@ -15,7 +15,10 @@
 //!    anchor its photon links to since, then the three nearest within D_max among the
 //!    anchors step 1 tried and those this batch created — and a new anchor is made where
 //!    none is acceptable, so that two nearby hits of one batch share an anchor as they
-//!    would one by one.
+//!    would one by one. The batch is searched a share at a time, and a share's step 2 runs
+//!    beside the next share's step 1, on a thread of its own; what it makes and links is
+//!    kept aside until every share is searched, so that step 1 reads the anchors as they
+//!    were before the batch.
 //! 3. *Resolve*: each hit's nearest photon, in hit order, links to the hit's anchor unless
 //!    it links one already (§3.3.2: the first claim keeps it); the new anchors' L_i are
 //!    estimated in parallel.
@@ -28,7 +31,9 @@ use glam::Vec3;
 
 use super::importons::Importons;
 use super::kdtree::Neighbours;
-use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree};
+use std::collections::HashMap;
+
+use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree, Quantizer};
 use crate::accel::{gamma, offset_ray_origin};
 use crate::interaction::{Materials, Segment, SurfacePoint};
 use crate::photon::PhotonMap;
@@ -48,8 +53,7 @@ pub struct Attacher<'a> {
 }
 
 impl Attacher<'_> {
-    fn acceptable(&self, set: &AnchorSet, id: AnchorId, hit: &AttachPoint) -> bool {
-        let a = set.anchor(id);
+    fn acceptable(&self, q: &Quantizer, a: &Anchor, hit: &AttachPoint) -> bool {
         // Cheapest first (§3.1): normal, albedo, then visibility by a shadow ray.
         if a.normal().dot(hit.ng) < self.params.normal_cos {
             return false;
@@ -61,8 +65,8 @@ impl Attacher<'_> {
         // half step per axis (twice that for margin), plus the rounding of the hit it came
         // from; the shadow ray runs between the two error boxes (pbrt-v4's `SpawnRayTo`),
         // leaving the anchor on the side its normal faces.
-        let p = a.position(&set.quantizer);
-        let p_error = 2.0 * set.quantizer.error() + p.abs() * gamma(7);
+        let p = a.position(q);
+        let p_error = 2.0 * q.error() + p.abs() * gamma(7);
         let target = offset_ray_origin(p, p_error, a.normal(), a.normal());
         let from = (hit.position, hit.error, hit.ng);
         let Some(s) = Segment::between(from, (target, Vec3::ZERO, a.normal())) else {
@@ -109,7 +113,7 @@ impl Attacher<'_> {
         };
         if let Some(a) = linked
             && set.anchor(a).is_live()
-            && self.acceptable(set, a, hit)
+            && self.acceptable(&set.quantizer, set.anchor(a), hit)
         {
             search.found = Some(a);
             return search;
@@ -124,7 +128,7 @@ impl Attacher<'_> {
             .iter()
             .map(|&(_, id)| AnchorId(id))
             .filter(|&id| Some(id) != linked)
-            .find(|&id| self.acceptable(set, id, hit));
+            .find(|&id| self.acceptable(&set.quantizer, set.anchor(id), hit));
         search.near = candidates;
         search
     }
@@ -138,43 +142,47 @@ impl Attacher<'_> {
     /// Step 2 (module doc) for a hit whose search found no anchor: the anchor its photon
     /// links to since the search, else an acceptable one among the three nearest within
     /// D_max of the anchors before this batch (all rejected in step 1) and those this batch
-    /// created (`fresh`, a tree of their ids), as one by one; else a new anchor (its L_i
-    /// estimated later, in step 3), which goes into `fresh`.
-    fn create(&self, set: &mut AnchorSet, fresh: &mut KdTree, s: &Search) -> (AnchorId, bool) {
+    /// made (`made.fresh`, a tree of their places in `made.anchors`), as one by one; else a
+    /// new anchor (its L_i estimated later, in step 3), which goes into `made`.
+    fn create(&self, set: &AnchorSet, made: &mut Made, s: &Search) -> AnchorId {
         let hit = &s.hit;
-        let now = s.photon.and_then(|ph| set.photon_links[ph]);
+        let q = &set.quantizer;
+        let now = s.photon.and_then(|ph| made.links[ph]);
         if let Some(a) = now
             && now != s.linked
-            && set.anchor(a).is_live()
-            && self.acceptable(set, a, hit)
         {
-            return (a, false);
+            let anchor = match made.place.get(&a.0) {
+                Some(&i) => &made.anchors[i as usize].1,
+                None => set.anchor(a),
+            };
+            if anchor.is_live() && self.acceptable(q, anchor, hit) {
+                return a;
+            }
         }
-        let (created, _) = fresh.search(hit.position, s.d_max, 3, |_| true);
-        let mut nearest: Vec<(f32, u32, bool)> = s
+        let (created, _) = made.fresh.search(hit.position, s.d_max, 3, |_| true);
+        // (squared distance, id, place in `made.anchors` for one this batch made)
+        let mut nearest: Vec<(f32, u32, Option<u32>)> = s
             .near
             .iter()
-            .map(|&(d2, id)| (d2, id, false))
-            .chain(created.iter().map(|&(d2, id)| (d2, id, true)))
+            .map(|&(d2, id)| (d2, id, None))
+            .chain(
+                created
+                    .iter()
+                    .map(|&(d2, i)| (d2, made.anchors[i as usize].0.0, Some(i))),
+            )
             .collect();
         nearest.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         nearest.truncate(3);
         if let Some(id) = nearest
             .iter()
-            .filter(|c| c.2)
-            .map(|&(_, id, _)| AnchorId(id))
-            .find(|&id| self.acceptable(set, id, hit))
+            .filter_map(|&(_, _, i)| i)
+            .map(|i| &made.anchors[i as usize])
+            .find(|(_, a, _)| self.acceptable(q, a, hit))
+            .map(|&(id, _, _)| id)
         {
-            return (id, false);
+            return id;
         }
-        let q = set.quantizer;
-        let id = set.add(Anchor::new(
-            &q,
-            hit.position,
-            hit.ng,
-            hit.albedo,
-            Vec3::ZERO,
-        ));
+        let anchor = Anchor::new(q, hit.position, hit.ng, hit.albedo, Vec3::ZERO);
         // Where its L_i is searched first (step 3): a nearby anchor's reach, widened by the
         // distance between the two (and the new one's quantisation), takes in that anchor's
         // whole disc, which held k photons when it was estimated.
@@ -182,74 +190,117 @@ impl Attacher<'_> {
             let r = set.reach2(AnchorId(other)).sqrt() + d2.sqrt() + q.max_error();
             r * r
         });
-        set.set_reach(id, near.fold(f32::INFINITY, f32::min));
-        fresh.insert(set.anchor(id).position(&q), id.0);
-        (id, true)
+        let reach2 = near.fold(f32::INFINITY, f32::min);
+        let id = made.ids.next().expect("anchor ids run on without end");
+        let i = made.anchors.len() as u32;
+        made.place.insert(id.0, i);
+        made.fresh.insert(anchor.position(q), i);
+        made.anchors.push((id, anchor, reach2));
+        id
     }
 
     /// AttachToAnchor (Pseudocode 1) for a batch of static gather hits, in order (record,
     /// then stratum) — steps 1 and 2 and the photon claims of step 3 (module doc): the
     /// anchor each hit links to, the same for any thread count, and the anchors made, whose
     /// L_i [`Attacher::estimate_created`] estimates.
+    ///
+    /// The hits are searched a share of [`SEARCH_SHARE`] at a time
+    /// ([`Attacher::link_all_in_shares`]).
     pub fn link_all(
         &self,
         set: &mut AnchorSet,
         hits: &[&SurfacePoint],
     ) -> (Vec<AnchorId>, Vec<AnchorId>) {
-        // Step 1: search in parallel. A hit's whole search is kept only where it found no
-        // anchor (step 2 reads it): most find one, and the batch holds millions. What the
-        // search reads of each hit is gathered first, in the hits' order, a share of the
-        // batch at a time: the search visits the hits in spatial order, and a whole
-        // surface point spans two cache lines.
-        let mut searches: Vec<Searched> = Vec::with_capacity(hits.len());
-        for share in hits.chunks(SEARCH_SHARE) {
-            use rayon::prelude::*;
-            let set = &*set;
-            let points: Vec<AttachPoint> = share
-                .par_iter()
-                .map(|sp| AttachPoint::of(sp, self.m))
-                .collect();
-            let positions: Vec<Vec3> = points.iter().map(|p| p.position).collect();
-            searches.extend(crate::photon::knn::map_in_query_order(&positions, |i| {
-                let s = self.search(set, &points[i]);
-                Searched {
-                    // A photon linked already keeps its anchor (step 3).
-                    photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
-                    visited: s.visited as u32,
-                    found: match s.found {
-                        Some(id) => Ok(id),
-                        None => Err(Box::new(s)),
-                    },
-                }
-            }));
-        }
-        let made = searches.iter().filter(|s| s.visited > 0).count() as u64;
-        let visited = searches.iter().map(|s| s.visited as u64).sum();
-        set.tree.count(made, visited);
-        // Step 2: create, in order, where the search found nothing.
-        let mut fresh = KdTree::default();
-        let mut created = Vec::new();
+        self.link_all_in_shares(set, hits, SEARCH_SHARE)
+    }
+
+    /// [`Attacher::link_all`], the hits searched `share` at a time (at least one), each
+    /// share's step 2 beside the next share's search: step 2 runs on one thread, and would
+    /// otherwise leave the others idle. So that every search still reads the anchors and
+    /// links as they were before the batch, step 2 and the claims write to [`Made`], which
+    /// goes into the set once the last share is searched. The result does not depend on
+    /// `share`.
+    pub fn link_all_in_shares(
+        &self,
+        set: &mut AnchorSet,
+        hits: &[&SurfacePoint],
+        share: usize,
+    ) -> (Vec<AnchorId>, Vec<AnchorId>) {
+        let mut made = Made {
+            links: set.photon_links.clone(),
+            ids: Box::new(set.next_ids()),
+            anchors: Vec::new(),
+            place: HashMap::new(),
+            fresh: KdTree::default(),
+        };
         let mut ids = Vec::with_capacity(hits.len());
-        for s in &searches {
-            let id = match &s.found {
-                Ok(id) => *id,
-                Err(search) => {
-                    let (id, new) = self.create(set, &mut fresh, search);
-                    if new {
-                        created.push(id);
+        let (mut searched, mut visited) = (0u64, 0u64);
+        {
+            let set = &*set;
+            let mut shares = hits.chunks(share.max(1));
+            let mut current = shares.next().map(|share| self.search_share(set, share));
+            while let Some(searches) = current {
+                let next = shares.next();
+                let step2 = || {
+                    for s in &searches {
+                        searched += u64::from(s.visited > 0);
+                        visited += u64::from(s.visited);
+                        let id = match &s.found {
+                            Ok(id) => *id,
+                            Err(search) => self.create(set, &mut made, search),
+                        };
+                        // Step 3: the first claim on a photon keeps it (§3.3.2).
+                        if let Some(ph) = s.photon.map(|ph| ph as usize)
+                            && made.links[ph].is_none()
+                        {
+                            made.links[ph] = Some(id);
+                        }
+                        ids.push(id);
                     }
-                    id
-                }
-            };
-            // Step 3: the first claim on a photon keeps it (§3.3.2).
-            if let Some(ph) = s.photon.map(|ph| ph as usize)
-                && set.photon_links[ph].is_none()
-            {
-                set.photon_links[ph] = Some(id);
+                };
+                (current, ()) =
+                    rayon::join(|| next.map(|share| self.search_share(set, share)), step2);
             }
-            ids.push(id);
+        }
+        set.tree.count(searched, visited);
+        set.photon_links = made.links;
+        let mut created = Vec::with_capacity(made.anchors.len());
+        for (id, anchor, reach2) in made.anchors {
+            let added = set.add(anchor);
+            debug_assert_eq!(
+                added, id,
+                "anchor ids are given in the order they are added"
+            );
+            set.set_reach(added, reach2);
+            created.push(added);
         }
         (ids, created)
+    }
+
+    /// Step 1 (module doc) for a share of a batch's hits. A hit's whole search is kept
+    /// only where it found no anchor (step 2 reads it): most find one, and the batch holds
+    /// millions. What the search reads of each hit is gathered first, in the hits' order:
+    /// the search visits the hits in spatial order, and a whole surface point spans two
+    /// cache lines.
+    fn search_share(&self, set: &AnchorSet, share: &[&SurfacePoint]) -> Vec<Searched> {
+        use rayon::prelude::*;
+        let points: Vec<AttachPoint> = share
+            .par_iter()
+            .map(|sp| AttachPoint::of(sp, self.m))
+            .collect();
+        let positions: Vec<Vec3> = points.iter().map(|p| p.position).collect();
+        crate::photon::knn::map_in_query_order(&positions, |i| {
+            let s = self.search(set, &points[i]);
+            Searched {
+                // A photon linked already keeps its anchor (step 3).
+                photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
+                visited: s.visited as u32,
+                found: match s.found {
+                    Some(id) => Ok(id),
+                    None => Err(Box::new(s)),
+                },
+            }
+        })
     }
 
     /// Step 3 (module doc) for the anchors `created`: their L_i, estimated
@@ -289,6 +340,22 @@ struct Searched {
     found: Result<AnchorId, Box<Search>>,
 }
 
+/// What step 2 and the claims of step 3 change while a batch attaches (module doc), kept
+/// apart from the set until every share is searched.
+struct Made {
+    /// The photons' links as the claims leave them (a copy of the set's).
+    links: Vec<Option<AnchorId>>,
+    /// The ids [`AnchorSet::add`] will give the anchors made, in order.
+    ids: Box<dyn Iterator<Item = AnchorId> + Send>,
+    /// The anchors made, in order: id, anchor, and the squared reach its L_i is searched
+    /// within first.
+    anchors: Vec<(AnchorId, Anchor, f32)>,
+    /// Each made anchor's place in `anchors`, by id.
+    place: HashMap<u32, u32>,
+    /// The made anchors' positions, with their places in `anchors`.
+    fresh: KdTree,
+}
+
 /// What attachment reads of a static gather hit: where it lies (with the error bound of
 /// its position), which way its surface faces, and its albedo.
 #[derive(Clone, Copy)]
@@ -310,9 +377,12 @@ impl AttachPoint {
     }
 }
 
-/// Hits whose [`AttachPoint`]s step 1 gathers at once (48 bytes each, 12.6 MB): a batch at the
-/// final preset holds millions.
-const SEARCH_SHARE: usize = 1 << 18;
+/// Hits that step 1 searches together, in their spatial order ([`Attacher::link_all`]):
+/// what it reads of each hit is gathered for a share at once (48 bytes a hit, 12.6 MB), a
+/// batch at the final preset holds millions, and a share's step 2 runs beside the next
+/// share's search. (Shares of an eighth of the batch, for more of step 2 beside the
+/// searches, made Sponza's frame 1 slower: the searches lose locality.)
+pub const SEARCH_SHARE: usize = 1 << 18;
 
 /// What step 1 (module doc) found for one hit.
 struct Search {

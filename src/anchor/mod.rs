@@ -234,6 +234,14 @@ impl AnchorSet {
         std::mem::take(&mut self.created)
     }
 
+    /// The ids that [`AnchorSet::add`] gives the anchors added next, in order: the free
+    /// slots as it reuses them, then new ones. (Attachment names the anchors it makes
+    /// before it adds them: see [`attach`].)
+    pub fn next_ids(&self) -> impl Iterator<Item = AnchorId> + use<> {
+        let free = self.free.clone().into_iter().rev();
+        free.chain(self.anchors.len() as u32..).map(AnchorId)
+    }
+
     /// Adds an anchor; returns its id (a free slot's id is reused).
     pub fn add(&mut self, a: Anchor) -> AnchorId {
         let id = match self.free.pop() {

@@ -234,13 +234,15 @@ fn a_gather_no_record_covers_reads_the_anchors_its_hits_would_link_to() {
     assert!(mean < 0.03, "{:.2} % over the frame", 100.0 * mean);
 }
 
-/// §3.3.2 within one batch of attachment ([`Attacher::link_all`]): a photon that no anchor
-/// had claimed before the batch links afterwards to the anchor of the first hit, in batch
-/// order, whose nearest photon it is; a photon claimed before keeps its anchor; the anchors
-/// the batch makes enter the anchor tree as one by one. (The example's gathers at camera
-/// hits after frames 10–13, as one batch.)
-#[test]
-fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
+/// The example's gathers at camera hits (every eighth pixel) after frames 10–13, as one
+/// batch of static hits, given to `f` with frame 13's attacher and anchor set.
+fn with_example_batch(
+    f: impl FnOnce(
+        &anchorage::anchor::attach::Attacher,
+        anchorage::anchor::AnchorSet,
+        &[&anchorage::interaction::SurfacePoint],
+    ),
+) {
     use anchorage::anchor::attach::Attacher;
     use anchorage::cache::gather;
     use anchorage::geom::Motion;
@@ -254,7 +256,7 @@ fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
         textures: &scene.textures,
     };
     let params = job.method.params();
-    let mut set = state.anchors.take().unwrap();
+    let set = state.anchors.take().unwrap();
     let att = Attacher {
         frame: &fs,
         m,
@@ -286,50 +288,82 @@ fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
         .filter_map(|h| h.sp.as_ref())
         .filter(|sp| sp.hit.motion == Motion::Static)
         .collect();
-    // Each hit's nearest photon, as attachment searches it (within the photon radius),
-    // tested by its own position's distance where attachment reads the search's.
-    let radius = params.anchors.photon_radius * att.scale;
-    let nearest = |x: glam::Vec3| {
-        pm.nearest_within(x, radius * (1.0 + 1e-5))
-            .map(|(i, _)| i)
-            .filter(|&i| (pm.photons[i].position - x).length() <= radius)
-    };
-    let before = set.photon_links.clone();
-    let tree_before = set.tree.clone();
-    let (ids, created) = att.link_all(&mut set, &hits);
-    // The batch's new anchors are in the set's tree, which is the tree that inserting them
-    // one by one, in the order they were made, gives.
-    set.check().unwrap();
-    assert!(!created.is_empty());
-    let mut one_by_one = tree_before;
-    // (Searches and visits the batch counted aside.)
-    (one_by_one.searches, one_by_one.visited) = (set.tree.searches, set.tree.visited);
-    for &id in &created {
-        one_by_one.insert(set.anchor(id).position(&set.quantizer), id.0);
-    }
-    assert!(one_by_one == set.tree, "the anchor tree after the batch");
-    assert_eq!(set.tree.len(), set.live_count());
-    let mut first = std::collections::HashMap::new();
-    for (sp, &id) in hits.iter().zip(&ids) {
-        if let Some(ph) = nearest(sp.position) {
-            first.entry(ph).or_insert(id);
+    f(&att, set, &hits);
+}
+
+/// §3.3.2 within one batch of attachment ([`Attacher::link_all`]): a photon that no anchor
+/// had claimed before the batch links afterwards to the anchor of the first hit, in batch
+/// order, whose nearest photon it is; a photon claimed before keeps its anchor; the anchors
+/// the batch makes enter the anchor tree as one by one. (The example's gathers at camera
+/// hits after frames 10–13, as one batch.)
+#[test]
+fn a_batch_links_each_unclaimed_photon_to_the_first_hit_that_finds_it() {
+    with_example_batch(|att, mut set, hits| {
+        let pm = att.pm;
+        // Each hit's nearest photon, as attachment searches it (within the photon radius),
+        // tested by its own position's distance where attachment reads the search's.
+        let radius = att.params.photon_radius * att.scale;
+        let nearest = |x: glam::Vec3| {
+            pm.nearest_within(x, radius * (1.0 + 1e-5))
+                .map(|(i, _)| i)
+                .filter(|&i| (pm.photons[i].position - x).length() <= radius)
+        };
+        let before = set.photon_links.clone();
+        let tree_before = set.tree.clone();
+        let (ids, created) = att.link_all(&mut set, hits);
+        // The batch's new anchors are in the set's tree, which is the tree that inserting them
+        // one by one, in the order they were made, gives.
+        set.check().unwrap();
+        assert!(!created.is_empty());
+        let mut one_by_one = tree_before;
+        // (Searches and visits the batch counted aside.)
+        (one_by_one.searches, one_by_one.visited) = (set.tree.searches, set.tree.visited);
+        for &id in &created {
+            one_by_one.insert(set.anchor(id).position(&set.quantizer), id.0);
         }
-    }
-    let mut claimed = 0;
-    for (ph, (was, now)) in before.iter().zip(&set.photon_links).enumerate() {
-        match (was, first.get(&ph)) {
-            (Some(_), _) | (None, None) => assert_eq!(now, was, "photon {ph}"),
-            (None, Some(&id)) => {
-                assert_eq!(*now, Some(id), "photon {ph}");
-                claimed += 1;
+        assert!(one_by_one == set.tree, "the anchor tree after the batch");
+        assert_eq!(set.tree.len(), set.live_count());
+        let mut first = std::collections::HashMap::new();
+        for (sp, &id) in hits.iter().zip(&ids) {
+            if let Some(ph) = nearest(sp.position) {
+                first.entry(ph).or_insert(id);
             }
         }
-    }
-    eprintln!(
-        "{} hits, {claimed} photons claimed in the batch",
-        hits.len()
-    );
-    assert!(claimed > 0);
+        let mut claimed = 0;
+        for (ph, (was, now)) in before.iter().zip(&set.photon_links).enumerate() {
+            match (was, first.get(&ph)) {
+                (Some(_), _) | (None, None) => assert_eq!(now, was, "photon {ph}"),
+                (None, Some(&id)) => {
+                    assert_eq!(*now, Some(id), "photon {ph}");
+                    claimed += 1;
+                }
+            }
+        }
+        eprintln!(
+            "{} hits, {claimed} photons claimed in the batch",
+            hits.len()
+        );
+        assert!(claimed > 0);
+    });
+}
+
+/// Attachment searches a batch a share at a time, each share's new anchors made beside the
+/// next share's search ([`Attacher::link_all_in_shares`]): the anchors, links and tree it
+/// leaves are those of one share, whatever the shares' size.
+#[test]
+fn a_batch_attaches_the_same_in_shares_of_any_size() {
+    with_example_batch(|att, set, hits| {
+        let mut whole = set.clone();
+        let (ids, created) = att.link_all_in_shares(&mut whole, hits, hits.len());
+        assert!(created.len() > 100, "{} anchors made", created.len());
+        for share in [1, 97, hits.len() / 3] {
+            let mut shared = set.clone();
+            let got = att.link_all_in_shares(&mut shared, hits, share);
+            assert!(got.0 == ids, "the hits' anchors, in shares of {share}");
+            assert!(got.1 == created, "the anchors made, in shares of {share}");
+            assert!(shared == whole, "the anchor set, in shares of {share}");
+        }
+    });
 }
 
 /// A floor, a wall at x = 3 lit by a point light, and a dynamic plate that slides in between
