@@ -44,6 +44,7 @@ declare -A TESTS=(
   [relink-first-found]="anchors::anchors_link_their_nearest_photons"
   [retry-takes-fewer]="anchors::searches_bounded"
   [integration-untimed]="gi::uncached_samples_count"
+  [shares-forget-made]="anchors::a_batch"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -51,7 +52,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   replay-reads-without-key replay-emitters-without-pick-check slack-near-dynamic slack-ignored
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
-  references-one-share relink-first-found retry-takes-fewer integration-untimed)
+  references-one-share relink-first-found retry-takes-fewer integration-untimed
+  shares-forget-made)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
