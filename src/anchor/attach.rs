@@ -16,7 +16,7 @@
 //!    anchors step 1 tried and those this batch created — and a new anchor is made where
 //!    none is acceptable, so that two nearby hits of one batch share an anchor as they
 //!    would one by one. The batch is searched a share at a time, and a share's step 2 runs
-//!    beside the next share's step 1, on a thread of its own; what it makes and links is
+//!    beside the next share's step 1, as a task of its own; what it makes and links is
 //!    kept aside until every share is searched, so that step 1 reads the anchors as they
 //!    were before the batch.
 //! 3. *Resolve*: each hit's nearest photon, in hit order, links to the hit's anchor unless
