@@ -217,7 +217,7 @@ impl Attacher<'_> {
     /// [`Attacher::link_all`], the hits searched `share` at a time (at least one), each
     /// share's step 2 beside the next share's search: step 2 runs on one thread, and would
     /// otherwise leave the others idle. So that every search still reads the anchors and
-    /// links as they were before the batch, step 2 and the claims write to [`Made`], which
+    /// links as they were before the batch, step 2 and the claims write to `Made`, which
     /// goes into the set once the last share is searched. The result does not depend on
     /// `share`.
     pub fn link_all_in_shares(
