@@ -27,12 +27,12 @@
 //! or linked, where step 1 finds an older one first: the choice may differ, not its
 //! quality (every anchor chosen passes the same tests).
 
+use std::collections::HashMap;
+
 use glam::Vec3;
 
 use super::importons::Importons;
 use super::kdtree::Neighbours;
-use std::collections::HashMap;
-
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree, Quantizer};
 use crate::accel::{gamma, offset_ray_origin};
 use crate::interaction::{Materials, Segment, SurfacePoint};
