@@ -11,10 +11,11 @@
 //!
 //! The tree is implicit: points sorted so that every range `lo..hi` longer than a leaf is
 //! split at its middle `mid` by the median on the range's widest axis (`lo..mid` at or
-//! below, `mid..hi` at or above), with the split stored at index `mid`. Building it needs
-//! no nodes and splits disjoint ranges in parallel. Results are the k points nearest by
-//! (squared distance, index), ties going to the lower index, so they do not depend on
-//! how the points were ordered in the tree.
+//! below, `mid..hi` at or above). Building it needs no nodes and splits disjoint ranges in
+//! parallel; the splits are then laid out as a binary heap (`Split`), whose top levels a
+//! query finds in cache. Results are the k points nearest by (squared distance, index),
+//! ties going to the lower index, so they do not depend on how the points were ordered in
+//! the tree.
 //!
 //! [`PointTree::nearest_within`] names the points it finds by their position in the tree's
 //! order ([`PointTree::item`] gives their index): neighbours lie close together in that
@@ -39,11 +40,21 @@ pub struct PointTree {
     points: Vec<[f32; 3]>,
     /// Each tree-order point's index in the slice the tree was built from.
     items: Vec<u32>,
-    /// At each split range's `mid`: the splitting axis (0..3) and value (the median's
-    /// coordinate; the points at `mid` and after are reordered by the splits below it).
-    /// Unused elsewhere.
-    axes: Vec<u8>,
-    splits: Vec<f32>,
+    /// The splits, as an implicit binary heap: the root's at 0, the children of the split
+    /// at `i` at `2i + 1` (its range's lower half) and `2i + 2` (the upper half).
+    splits: Vec<Split>,
+}
+
+/// A range's split: its axis (0..3) and value (the median's coordinate; the points at its
+/// `mid` and after are reordered by the splits below it).
+///
+/// Kept in heap order rather than at each range's `mid`: a query reads one split per level,
+/// and the top levels then share a few cache lines instead of each taking one (or two, for
+/// an axis and a value apart) of the point-sized arrays.
+#[derive(Debug, Clone, Copy, Default)]
+struct Split {
+    value: f32,
+    axis: u32,
 }
 
 /// One neighbour found: squared distance and position in the tree's order (for
@@ -66,12 +77,13 @@ impl PointTree {
             .map(|(i, p)| (p.to_array(), i as u32))
             .collect();
         let mut axes = vec![0u8; n];
-        let mut splits = vec![0.0f32; n];
-        split(&mut order, &mut axes, &mut splits);
+        let mut values = vec![0.0f32; n];
+        split(&mut order, &mut axes, &mut values);
+        let mut splits = Vec::new();
+        in_heap_order(0, n, 0, &axes, &values, &mut splits);
         PointTree {
             points: order.iter().map(|e| e.0).collect(),
             items: order.iter().map(|e| e.1).collect(),
-            axes,
             splits,
         }
     }
@@ -84,8 +96,7 @@ impl PointTree {
     pub fn heap_bytes(&self) -> usize {
         self.points.capacity() * size_of::<[f32; 3]>()
             + self.items.capacity() * size_of::<u32>()
-            + self.axes.capacity()
-            + self.splits.capacity() * size_of::<f32>()
+            + self.splits.capacity() * size_of::<Split>()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -105,15 +116,53 @@ impl PointTree {
 
     /// The point nearest to `x` at squared distance at most `r2_max` (ties: the lower
     /// index), as (squared distance, index).
+    ///
+    /// Asked at every gather hit that attaches (Pseudocode 1's nearest photon), so it walks
+    /// the tree in a loop, with the ranges still to visit on a stack in the frame, instead
+    /// of the recursion of the other queries: the same ranges in the same order.
     pub fn nearest_one(&self, x: Vec3, r2_max: f32) -> Option<Neighbour> {
+        let q = x.to_array();
+        let mut bound = r2_max;
         let mut best: Option<Neighbour> = None;
-        self.search(x, r2_max, |d2, pos| {
-            let i = self.items[pos as usize];
-            if best.is_none_or(|b| (d2, i) < b) {
-                best = Some((d2, i));
+        // Ranges to visit (lo, hi, split) with the squared distance to the plane that split
+        // them off: at most one per level, and a tree of 2^32 points has fewer than 32.
+        let mut pending = [(0u32, 0u32, 0u32, 0.0f32); 32];
+        pending[0] = (0, self.points.len() as u32, 0, 0.0);
+        let mut top = usize::from(!self.points.is_empty());
+        while top > 0 {
+            top -= 1;
+            let (mut lo, mut hi, mut node, plane2) = pending[top];
+            if plane2 > bound {
+                continue;
             }
-            Some(d2)
-        });
+            while (hi - lo) as usize > LEAF {
+                let mid = lo + (hi - lo) / 2;
+                let split = self.splits[node as usize];
+                let diff = q[split.axis as usize] - split.value;
+                let (lower, upper) = ((lo, mid, 2 * node + 1), (mid, hi, 2 * node + 2));
+                let (near, far) = if diff < 0.0 {
+                    (lower, upper)
+                } else {
+                    (upper, lower)
+                };
+                if diff * diff <= bound {
+                    pending[top] = (far.0, far.1, far.2, diff * diff);
+                    top += 1;
+                }
+                (lo, hi, node) = near;
+            }
+            for (p, pos) in self.points[lo as usize..hi as usize].iter().zip(lo..) {
+                let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
+                let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                if d2 <= bound {
+                    let i = self.items[pos as usize];
+                    if best.is_none_or(|b| (d2, i) < b) {
+                        best = Some((d2, i));
+                        bound = d2;
+                    }
+                }
+            }
+        }
         best
     }
 
@@ -189,15 +238,23 @@ impl PointTree {
     /// bound.
     fn search<F: FnMut(f32, u32) -> Option<f32>>(&self, x: Vec3, r2_max: f32, mut found: F) {
         let mut bound = r2_max;
-        self.visit(0, self.points.len(), x.to_array(), &mut bound, &mut found);
+        self.visit(
+            0,
+            self.points.len(),
+            0,
+            x.to_array(),
+            &mut bound,
+            &mut found,
+        );
     }
 
-    /// Visits the points of `lo..hi` within `bound` of `q`: `found(d2, position)` may
-    /// return a tighter bound.
+    /// Visits the points of `lo..hi` (split by `splits[node]`) within `bound` of `q`:
+    /// `found(d2, position)` may return a tighter bound.
     fn visit<F: FnMut(f32, u32) -> Option<f32>>(
         &self,
         lo: usize,
         hi: usize,
+        node: usize,
         q: [f32; 3],
         bound: &mut f32,
         found: &mut F,
@@ -215,16 +272,16 @@ impl PointTree {
             return;
         }
         let mid = lo + (hi - lo) / 2;
-        let axis = self.axes[mid] as usize;
-        let diff = q[axis] - self.splits[mid];
+        let split = self.splits[node];
+        let diff = q[split.axis as usize] - split.value;
         let (near, far) = if diff < 0.0 {
-            ((lo, mid), (mid, hi))
+            ((lo, mid, 2 * node + 1), (mid, hi, 2 * node + 2))
         } else {
-            ((mid, hi), (lo, mid))
+            ((mid, hi, 2 * node + 2), (lo, mid, 2 * node + 1))
         };
-        self.visit(near.0, near.1, q, bound, found);
+        self.visit(near.0, near.1, near.2, q, bound, found);
         if diff * diff <= *bound {
-            self.visit(far.0, far.1, q, bound, found);
+            self.visit(far.0, far.1, far.2, q, bound, found);
         }
     }
 }
@@ -327,6 +384,31 @@ fn keep_nearest(buf: &mut Vec<Neighbour>, k: usize, items: &[u32]) {
             .then_with(|| items[a.1 as usize].cmp(&items[b.1 as usize]))
     });
     buf.truncate(k);
+}
+
+/// The splits `split` wrote at each range's `mid` (`axes`, `values`), for the range
+/// `lo..hi` and those below it, into `heap` from index `node` (`PointTree::splits`).
+fn in_heap_order(
+    lo: usize,
+    hi: usize,
+    node: usize,
+    axes: &[u8],
+    values: &[f32],
+    heap: &mut Vec<Split>,
+) {
+    if hi - lo <= LEAF {
+        return;
+    }
+    let mid = lo + (hi - lo) / 2;
+    if heap.len() <= node {
+        heap.resize(node + 1, Split::default());
+    }
+    heap[node] = Split {
+        value: values[mid],
+        axis: u32::from(axes[mid]),
+    };
+    in_heap_order(lo, mid, 2 * node + 1, axes, values, heap);
+    in_heap_order(mid, hi, 2 * node + 2, axes, values, heap);
 }
 
 /// Orders `pts` into the implicit tree, writing each split's axis and value at its `mid`.
@@ -489,6 +571,33 @@ mod tests {
                 .enumerate()
                 .all(|(i, s)| *s == format!("point {i}"))
         );
+    }
+
+    #[test]
+    fn the_nearest_of_equally_near_points_is_the_lowest_index() {
+        // Six points around each centre at the same distance, their indices in an order the
+        // tree's coordinate order does not follow: the first one a walk meets is often not
+        // the lowest.
+        let offsets = [Vec3::X, -Vec3::Y, Vec3::Z, -Vec3::X, Vec3::Y, -Vec3::Z];
+        let centres: Vec<Vec3> = (0..200)
+            .map(|c| Vec3::new(c as f32 * 10.0, (c % 7) as f32 * 10.0, 0.0))
+            .collect();
+        let mut points = vec![Vec3::ZERO; centres.len() * offsets.len()];
+        for (c, &centre) in centres.iter().enumerate() {
+            for (j, &o) in offsets.iter().enumerate() {
+                // Cluster c's point j at index j' (a rotation by c) of the cluster's six.
+                points[c * offsets.len() + (j + c) % offsets.len()] = centre + o;
+            }
+        }
+        let tree = PointTree::new(&points);
+        for &centre in &centres {
+            let want = brute(&points, centre, f32::INFINITY, 1);
+            assert_eq!(
+                tree.nearest_one(centre, f32::INFINITY).map(|n| vec![n]),
+                Some(want),
+                "at {centre}"
+            );
+        }
     }
 
     #[test]
