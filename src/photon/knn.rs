@@ -116,53 +116,15 @@ impl PointTree {
 
     /// The point nearest to `x` at squared distance at most `r2_max` (ties: the lower
     /// index), as (squared distance, index).
-    ///
-    /// Asked at every gather hit that attaches (Pseudocode 1's nearest photon), so it walks
-    /// the tree in a loop, with the ranges still to visit on a stack in the frame, instead
-    /// of the recursion of the other queries: the same ranges in the same order.
     pub fn nearest_one(&self, x: Vec3, r2_max: f32) -> Option<Neighbour> {
-        let q = x.to_array();
-        let mut bound = r2_max;
         let mut best: Option<Neighbour> = None;
-        // Ranges to visit (lo, hi, split) with the squared distance to the plane that split
-        // them off: at most one per level, and a tree of 2^32 points has fewer than 32.
-        let mut pending = [(0u32, 0u32, 0u32, 0.0f32); 32];
-        pending[0] = (0, self.points.len() as u32, 0, 0.0);
-        let mut top = usize::from(!self.points.is_empty());
-        while top > 0 {
-            top -= 1;
-            let (mut lo, mut hi, mut node, plane2) = pending[top];
-            if plane2 > bound {
-                continue;
+        self.search(x, r2_max, |d2, pos| {
+            let i = self.items[pos as usize];
+            if best.is_none_or(|b| (d2, i) < b) {
+                best = Some((d2, i));
             }
-            while (hi - lo) as usize > LEAF {
-                let mid = lo + (hi - lo) / 2;
-                let split = self.splits[node as usize];
-                let diff = q[split.axis as usize] - split.value;
-                let (lower, upper) = ((lo, mid, 2 * node + 1), (mid, hi, 2 * node + 2));
-                let (near, far) = if diff < 0.0 {
-                    (lower, upper)
-                } else {
-                    (upper, lower)
-                };
-                if diff * diff <= bound {
-                    pending[top] = (far.0, far.1, far.2, diff * diff);
-                    top += 1;
-                }
-                (lo, hi, node) = near;
-            }
-            for (p, pos) in self.points[lo as usize..hi as usize].iter().zip(lo..) {
-                let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
-                let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                if d2 <= bound {
-                    let i = self.items[pos as usize];
-                    if best.is_none_or(|b| (d2, i) < b) {
-                        best = Some((d2, i));
-                        bound = d2;
-                    }
-                }
-            }
-        }
+            Some(d2)
+        });
         best
     }
 
@@ -234,54 +196,53 @@ impl PointTree {
         }
     }
 
-    /// Visits the points within `r2_max` of `x`: `found(d2, position)` may return a tighter
-    /// bound.
-    fn search<F: FnMut(f32, u32) -> Option<f32>>(&self, x: Vec3, r2_max: f32, mut found: F) {
-        let mut bound = r2_max;
-        self.visit(
-            0,
-            self.points.len(),
-            0,
-            x.to_array(),
-            &mut bound,
-            &mut found,
-        );
-    }
-
-    /// Visits the points of `lo..hi` (split by `splits[node]`) within `bound` of `q`:
+    /// Visits the points within `r2_max` of `x`, the nearer side of each split first:
     /// `found(d2, position)` may return a tighter bound.
-    fn visit<F: FnMut(f32, u32) -> Option<f32>>(
-        &self,
-        lo: usize,
-        hi: usize,
-        node: usize,
-        q: [f32; 3],
-        bound: &mut f32,
-        found: &mut F,
-    ) {
-        if hi - lo <= LEAF {
-            for (p, pos) in self.points[lo..hi].iter().zip(lo as u32..) {
+    ///
+    /// A loop, with the ranges still to visit on a stack in the frame, rather than a
+    /// recursion, and inlined into each query: the queries come by the million a frame (an
+    /// estimate at every gather hit and anchor, the nearest photon at every attaching hit,
+    /// Pseudocode 1).
+    #[inline(always)]
+    fn search<F: FnMut(f32, u32) -> Option<f32>>(&self, x: Vec3, r2_max: f32, mut found: F) {
+        let q = x.to_array();
+        let mut bound = r2_max;
+        // Ranges to visit (lo, hi, split) with the squared distance to the plane that split
+        // them off: at most one per level, and a tree of 2^32 points has fewer than 32.
+        let mut pending = [(0u32, 0u32, 0u32, 0.0f32); 32];
+        pending[0] = (0, self.points.len() as u32, 0, 0.0);
+        let mut top = usize::from(!self.points.is_empty());
+        while top > 0 {
+            top -= 1;
+            let (mut lo, mut hi, mut node, plane2) = pending[top];
+            if plane2 > bound {
+                continue;
+            }
+            while (hi - lo) as usize > LEAF {
+                let mid = lo + (hi - lo) / 2;
+                let split = self.splits[node as usize];
+                let diff = q[split.axis as usize] - split.value;
+                let (lower, upper) = ((lo, mid, 2 * node + 1), (mid, hi, 2 * node + 2));
+                let (near, far) = if diff < 0.0 {
+                    (lower, upper)
+                } else {
+                    (upper, lower)
+                };
+                if diff * diff <= bound {
+                    pending[top] = (far.0, far.1, far.2, diff * diff);
+                    top += 1;
+                }
+                (lo, hi, node) = near;
+            }
+            for (p, pos) in self.points[lo as usize..hi as usize].iter().zip(lo..) {
                 let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
                 let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                if d2 <= *bound
+                if d2 <= bound
                     && let Some(b) = found(d2, pos)
                 {
-                    *bound = b;
+                    bound = b;
                 }
             }
-            return;
-        }
-        let mid = lo + (hi - lo) / 2;
-        let split = self.splits[node];
-        let diff = q[split.axis as usize] - split.value;
-        let (near, far) = if diff < 0.0 {
-            ((lo, mid, 2 * node + 1), (mid, hi, 2 * node + 2))
-        } else {
-            ((mid, hi, 2 * node + 2), (lo, mid, 2 * node + 1))
-        };
-        self.visit(near.0, near.1, near.2, q, bound, found);
-        if diff * diff <= *bound {
-            self.visit(far.0, far.1, far.2, q, bound, found);
         }
     }
 }
