@@ -18,7 +18,7 @@ use crate::geom::{Geometry, face_normal_area};
 use crate::sampling::Sampler;
 use crate::scene::frame::uniform_barycentric;
 use crate::scene::material::NormalMap;
-use crate::scene::{FrameScene, LightKind, Material, PunctualLight, Texture};
+use crate::scene::{CameraRay, FrameScene, LightKind, Material, PunctualLight, Texture};
 
 /// What the renderer needs of the scene's materials.
 #[derive(Clone, Copy)]
@@ -262,6 +262,82 @@ pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
             f32::INFINITY,
         )
         .map(|h| SurfacePoint::new(frame, h, o, d))
+}
+
+/// The camera rays through film positions `film` (each in `[0, 1]²`, y down) and what they
+/// hit, traced four at a time ([`crate::accel::Accel::closest4_rays`]: one walk of the tree
+/// for four rays that run close together); each hit is the one [`camera_hit`] finds.
+pub fn camera_hits(frame: &FrameScene, film: &[(f32, f32)]) -> Vec<(CameraRay, Option<Hit>)> {
+    let mut out = Vec::with_capacity(film.len());
+    for four in film.chunks(4) {
+        let rays: [Option<CameraRay>; 4] =
+            std::array::from_fn(|i| four.get(i).map(|&(x, y)| frame.camera.ray(x, y)));
+        let hits = frame.accel.closest4_rays(
+            &frame.static_geometry,
+            &frame.dynamic_geometry,
+            rays.map(|r| r.map(|r| (r.origin, r.dir, r.tmax))),
+        );
+        out.extend(
+            rays.into_iter()
+                .zip(hits)
+                .filter_map(|(r, h)| Some((r?, h))),
+        );
+    }
+    out
+}
+
+/// What the camera sees at every pixel centre of a frame: traced once, in parallel, four
+/// neighbouring pixels at a time ([`camera_hits`]), for the three passes that look there
+/// (cache placement, the lookup points, the shading pass).
+pub struct PixelCentres {
+    width: u32,
+    height: u32,
+    hits: Vec<Option<Hit>>,
+}
+
+impl PixelCentres {
+    /// The pixel centres of a `width` × `height` image of `frame`.
+    pub fn trace(frame: &FrameScene, width: u32, height: u32) -> Self {
+        use rayon::prelude::*;
+        let film: Vec<(f32, f32)> = (0..height)
+            .flat_map(|y| (0..width).map(move |x| Self::film(width, height, x, y)))
+            .collect();
+        let hits = film
+            .par_chunks(64)
+            .flat_map_iter(|chunk| camera_hits(frame, chunk).into_iter().map(|(_, h)| h))
+            .collect();
+        PixelCentres {
+            width,
+            height,
+            hits,
+        }
+    }
+
+    /// The film position of pixel (x, y)'s centre.
+    fn film(width: u32, height: u32, x: u32, y: u32) -> (f32, f32) {
+        (
+            (x as f32 + 0.5) / width as f32,
+            (y as f32 + 0.5) / height as f32,
+        )
+    }
+
+    /// What pixel (x, y)'s centre ray hit.
+    pub fn hit(&self, x: u32, y: u32) -> Option<Hit> {
+        self.hits[(y * self.width + x) as usize]
+    }
+
+    /// The surface point pixel (x, y)'s centre ray hit ([`camera_hit`]'s).
+    pub fn point(&self, frame: &FrameScene, x: u32, y: u32) -> Option<SurfacePoint> {
+        let (fx, fy) = Self::film(self.width, self.height, x, y);
+        let r = frame.camera.ray(fx, fy);
+        self.hit(x, y)
+            .map(|h| SurfacePoint::new(frame, h, r.origin, r.dir))
+    }
+
+    /// The image size the centres were traced for.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
 }
 
 /// The surface the camera sees through film position `(x, y)` (in `[0, 1]²`, y down), between

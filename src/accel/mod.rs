@@ -400,8 +400,7 @@ impl Accel {
     }
 
     /// [`Accel::closest`] (with no limit on `t`) for four rays from `origin`, traced together
-    /// through the static set (`PairTree::closest4`); a `None` direction is not traced. The
-    /// hits are those `closest` finds for each ray alone.
+    /// through the static set ([`Accel::closest4_rays`]); a `None` direction is not traced.
     pub fn closest4(
         &self,
         s: &Geometry,
@@ -409,12 +408,33 @@ impl Accel {
         origin: Vec3,
         dirs: [Option<Vec3>; 4],
     ) -> [Option<Hit>; 4] {
+        self.closest4_rays(s, d, dirs.map(|d| d.map(|d| (origin, d, f32::INFINITY))))
+    }
+
+    /// [`Accel::closest`] for four rays, each `(origin, direction, tmax)`, traced together
+    /// through the static set (`PairTree::closest4`: one walk of the tree for the four); a
+    /// `None` ray is not traced. The hits are those `closest` finds for each ray alone. For
+    /// rays that run close together: a record's gather rays through neighbouring strata, the
+    /// camera samples of one pixel.
+    pub fn closest4_rays(
+        &self,
+        s: &Geometry,
+        d: &Geometry,
+        rays: [Option<(Vec3, Vec3, f32)>; 4],
+    ) -> [Option<Hit>; 4] {
         let active = (0..4)
-            .filter(|&i| dirs[i].is_some())
+            .filter(|&i| rays[i].is_some())
             .fold(0u32, |m, i| m | 1 << i);
-        let dirs = dirs.map(|d| canonical(d.unwrap_or(Vec3::Z)));
-        let rays = dirs.map(|d| Ray::new(origin.into(), d.into(), 0.0, f32::INFINITY));
-        let srs = dirs.map(|d| ShearedRay::new(origin, d));
+        let rays = rays.map(|r| {
+            let (o, dir, tmax) = r.unwrap_or((Vec3::ZERO, Vec3::Z, f32::INFINITY));
+            let dir = canonical(dir);
+            (
+                Ray::new(o.into(), dir.into(), 0.0, tmax),
+                ShearedRay::new(o, dir),
+            )
+        });
+        let srs = rays.map(|r| r.1);
+        let rays = rays.map(|r| r.0);
         let statics = self.statics.tree.closest4(s, &rays, &srs, active);
         std::array::from_fn(|i| {
             (active & (1 << i) != 0).then(|| self.with_dynamic(d, statics[i], &rays[i], &srs[i]))?
@@ -801,7 +821,8 @@ mod tests {
     /// and edge midpoints of integer grids, where edge functions come out exactly zero and
     /// the test decides in f64, and at points scattered between; every third triangle is
     /// alpha-masked, so that rays pass through the cut-outs of the front grid to the one
-    /// behind it. Traced four at a time ([`Accel::closest4`]), each ray finds what it finds
+    /// behind it. Traced four at a time ([`Accel::closest4`] from one origin,
+    /// [`Accel::closest4_rays`] from four, some rays cut short), each ray finds what it finds
     /// alone.
     #[test]
     fn four_lane_test_agrees_with_each_triangles_own() {
@@ -879,6 +900,24 @@ mod tests {
                         let alone = dir.and_then(|dir| a.closest(s, d, o, dir, f32::INFINITY));
                         assert_eq!(hit, alone, "{o} along {dir:?}");
                     }
+                }
+            }
+        }
+        // Four rays from four origins (camera rays from the near plane), some of them cut
+        // short: each finds what it finds alone.
+        for (n, four) in targets.chunks(4).enumerate() {
+            let rays: [Option<(Vec3, Vec3, f32)>; 4] = std::array::from_fn(|i| {
+                let o = origins[(n + i) % origins.len()];
+                let tmax = [f32::INFINITY, 3.5, 2.0][(n + i) % 3];
+                four.get(i)
+                    .filter(|_| (4 * n + i) % 5 != 2)
+                    .map(|&target| (o, target - o, tmax))
+            });
+            for (a, s, d) in [(&a, &g, &e), (&split, &front, &back)] {
+                let found = a.closest4_rays(s, d, rays);
+                for (ray, hit) in rays.into_iter().zip(found) {
+                    let alone = ray.and_then(|(o, dir, tmax)| a.closest(s, d, o, dir, tmax));
+                    assert_eq!(hit, alone, "{ray:?}");
                 }
             }
         }

@@ -264,9 +264,9 @@ impl PairTree {
         }
     }
 
-    /// [`PairTree::closest`] for the rays of the lanes set in `active`, four rays from one
-    /// origin (a record's gather rays through neighbouring strata): the tree is walked once
-    /// for all of them, each pair's two boxes tested against the four rays in SIMD lanes, a
+    /// [`PairTree::closest`] for the rays of the lanes set in `active`, four neighbouring rays
+    /// (a record's gather rays through neighbouring strata, one pixel's camera samples): the
+    /// tree is walked once for all of them, each pair's two boxes tested against the four rays in SIMD lanes, a
     /// subtree entered with the lanes that enter its box, a leaf tested for each of them. A
     /// lane's hit is the one [`PairTree::closest`] finds: every triangle its ray can meet
     /// lies in a box it enters, and the nearest hit does not depend on the order.
@@ -276,6 +276,25 @@ impl PairTree {
         rays: &[Ray; 4],
         srs: &[ShearedRay; 4],
         active: u32,
+    ) -> [Option<(f32, u32)>; 4] {
+        let o = rays[0].origin;
+        if rays.iter().all(|r| r.origin == o) {
+            self.closest4_from(g, rays, srs, active, o)
+        } else {
+            let lanes = |a: usize| Vec4::from_array(rays.map(|r| r.origin[a]));
+            self.closest4_from(g, rays, srs, active, [lanes(0), lanes(1), lanes(2)])
+        }
+    }
+
+    /// [`PairTree::closest4`] for rays that leave from `origins`.
+    #[inline(always)]
+    fn closest4_from(
+        &self,
+        g: &Geometry,
+        rays: &[Ray; 4],
+        srs: &[ShearedRay; 4],
+        active: u32,
+        origins: impl Origins,
     ) -> [Option<(f32, u32)>; 4] {
         let mut best: [Option<(f32, u32)>; 4] = [None; 4];
         let Some((root_box, root)) = &self.root else {
@@ -302,12 +321,15 @@ impl PairTree {
             leaf(*root, active, &mut tmax, &mut best);
             return best;
         }
-        let o = rays[0].origin;
         let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
         let (ix, iy, iz) = (inv(0), inv(1), inv(2));
-        // One axis's slab for the four rays: the distances to its two planes.
-        let slab = |lo: f32, hi: f32, o: f32, inv: Vec4| {
-            (Vec4::splat(lo - o) * inv, Vec4::splat(hi - o) * inv)
+        // One axis's slab for the four rays: the distances to its two planes (each lane as
+        // obvhs's `Aabb::intersect_ray` computes it for its ray).
+        let slab = |lo: f32, hi: f32, axis: usize, inv: Vec4| {
+            (
+                origins.to_plane(lo, axis) * inv,
+                origins.to_plane(hi, axis) * inv,
+            )
         };
         obvhs::fast_stack!(u64, (96, 192), self.max_depth, stack, {
             // The pair to open and the lanes that entered its parent's box.
@@ -318,9 +340,9 @@ impl PairTree {
                 // Child `c`'s slab test for the four rays (obvhs's `Aabb::intersect_ray`,
                 // lane by lane): entry distances and the lanes that enter it.
                 let enter = |c: usize| {
-                    let (x0, x1) = slab(p.x[c], p.x[c + 2], o.x, ix);
-                    let (y0, y1) = slab(p.y[c], p.y[c + 2], o.y, iy);
-                    let (z0, z1) = slab(p.z[c], p.z[c + 2], o.z, iz);
+                    let (x0, x1) = slab(p.x[c], p.x[c + 2], 0, ix);
+                    let (y0, y1) = slab(p.y[c], p.y[c + 2], 1, iy);
+                    let (z0, z1) = slab(p.z[c], p.z[c + 2], 2, iz);
                     let near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1));
                     let far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1));
                     let hit = far.cmpge(near) & far.cmpge(Vec4::ZERO) & near.cmplt(far_limit);
@@ -449,6 +471,27 @@ impl PairTree {
                 },
             };
         }
+    }
+}
+
+/// Where the four rays of [`PairTree::closest4`] leave from: one point for all of them (a
+/// record's gather rays), or one for each lane (camera rays from the near plane).
+trait Origins: Copy {
+    /// Each lane's distance from its origin to `plane` along `axis` (`plane − o[axis]`).
+    fn to_plane(self, plane: f32, axis: usize) -> Vec4;
+}
+
+impl Origins for Vec3A {
+    #[inline(always)]
+    fn to_plane(self, plane: f32, axis: usize) -> Vec4 {
+        Vec4::splat(plane - self[axis])
+    }
+}
+
+impl Origins for [Vec4; 3] {
+    #[inline(always)]
+    fn to_plane(self, plane: f32, axis: usize) -> Vec4 {
+        Vec4::splat(plane) - self[axis]
     }
 }
 

@@ -34,7 +34,7 @@ pub use record::{ENCLOSED_SHARE, HIT_BACK, HIT_DYNAMIC, Record, Stratum, finish_
 pub use removal::{Contribution, WeberTally};
 
 use crate::geom::Motion;
-use crate::interaction::{SurfacePoint, trace_camera};
+use crate::interaction::{PixelCentres, SurfacePoint};
 use crate::scene::{FrameCamera, FrameScene, Projection};
 
 /// Irradiance-cache settings ([`CacheParams::default`] = the `production` preset).
@@ -629,7 +629,8 @@ impl IrradianceCache {
     /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
     /// grids from `coarsest` down to 1, then [`IrradianceCache::place_at_samples`] for
     /// `samples`, the points off the pixel centres where this frame's camera samples will
-    /// read the cache (with spot records for those no other record covers, with `spot`).
+    /// read the cache (with spot records for those no other record covers, with `spot`). The
+    /// grids' points are pixel centres, whose hits `centres` holds.
     #[allow(clippy::too_many_arguments)] // placement needs the view and the method
     pub fn place(
         &mut self,
@@ -639,10 +640,12 @@ impl IrradianceCache {
         p: &CacheParams,
         frame_number: i32,
         samples: &[(u32, SurfacePoint)],
+        centres: &PixelCentres,
         spot: bool,
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
     ) {
+        debug_assert_eq!(centres.size(), (width, height));
         let coarsest = 16u32;
         let mut spacing = coarsest;
         // The records of earlier frames that see no dynamic prim cover to the slack
@@ -658,12 +661,7 @@ impl IrradianceCache {
             let needed: Vec<(u32, SurfacePoint)> = candidates
                 .par_iter()
                 .filter_map(|&(x, y)| {
-                    let sp = trace_camera(
-                        frame,
-                        (x as f32 + 0.5) / width as f32,
-                        (y as f32 + 0.5) / height as f32,
-                    )
-                    .1?;
+                    let sp = centres.point(frame, x, y)?;
                     let covered = self.covers_with_slack(
                         sp.position,
                         sp.ns,

@@ -32,7 +32,7 @@ use crate::cache::gather::{self, GatherHit, GatherTimings};
 use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Stratum};
 use crate::color::luminance;
 use crate::geom::Motion;
-use crate::interaction::SurfacePoint;
+use crate::interaction::{PixelCentres, SurfacePoint};
 use crate::photon::PhotonMap;
 use crate::scene::FrameScene;
 use crate::visibility::{self, DynamicSet, StrataBits, Visibility};
@@ -194,6 +194,7 @@ pub fn update(
     params: &GiParams,
     vis: &dyn Visibility,
     samples: &[(u32, SurfacePoint)],
+    centres: &PixelCentres,
     albedo: bool,
     timings: &mut GatherTimings,
 ) -> Result<AnchorStats, visibility::Error> {
@@ -248,7 +249,7 @@ pub fn update(
 
     st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, todo, &changed, cp, false, timings);
 
-    place_records(ctx, &att, set, cache, cp, samples, timings);
+    place_records(ctx, &att, set, cache, cp, samples, centres, timings);
 
     let refs = anchor_references(set, cache);
     if removed {
@@ -658,8 +659,9 @@ fn update_records(
     t.elapsed().as_secs_f64()
 }
 
-/// New records where the image needs them (at the camera samples' lookup `samples` too);
-/// all their strata attach.
+/// New records where the image needs them (at the camera samples' lookup `samples` too;
+/// the pixel centres' hits in `centres`); all their strata attach.
+#[allow(clippy::too_many_arguments)] // the frame, its anchors and cache, where to look
 fn place_records(
     ctx: &FrameContext,
     att: &Attacher,
@@ -667,6 +669,7 @@ fn place_records(
     cache: &mut IrradianceCache,
     cp: &CacheParams,
     samples: &[(u32, SurfacePoint)],
+    centres: &PixelCentres,
     timings: &mut GatherTimings,
 ) {
     let first_new = cache.len();
@@ -681,6 +684,7 @@ fn place_records(
             cp,
             ctx.frame,
             samples,
+            centres,
             true,
             &mut resolver,
             timings,

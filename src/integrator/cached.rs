@@ -33,7 +33,7 @@ use crate::cache::{
     WeberTally, gather,
 };
 use crate::geom::Motion;
-use crate::interaction::{Materials, SurfacePoint, camera_hit};
+use crate::interaction::{Materials, PixelCentres, SurfacePoint, camera_hit};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
 use crate::visibility::Visibility;
@@ -218,7 +218,38 @@ pub fn render_in_bands(
     let cache = state.cache;
     cache.set_params(&params.cache);
     let first_id = cache.next_id();
-    if method == CachedMethod::Anchors && refresh.relight_only {
+    // What the camera sees at the pixel centres, traced once for placement, the lookup
+    // points and the shading pass (a relight reads the hits its log keeps instead).
+    let centres = (!(method == CachedMethod::Anchors && refresh.relight_only))
+        .then(|| PixelCentres::trace(ctx.scene, ctx.width, ctx.height));
+    if let Some(centres) = &centres
+        && method == CachedMethod::Anchors
+    {
+        let samples = lookup_points(ctx, spp, centres);
+        st.anchors = Some(super::anchors::update(
+            ctx,
+            cache,
+            state.anchors,
+            &pm,
+            params,
+            visibility,
+            &samples,
+            centres,
+            refresh.albedo,
+            &mut gt,
+        )?);
+    } else if let Some(centres) = &centres {
+        let samples = lookup_points(ctx, spp, centres);
+        prepare_brute_force(
+            ctx,
+            cache,
+            &params.cache,
+            estimate,
+            &samples,
+            centres,
+            &mut gt,
+        );
+    } else {
         st.anchors = Some(super::anchors::relight(
             ctx,
             cache,
@@ -228,22 +259,6 @@ pub fn render_in_bands(
             refresh.albedo,
             &mut gt,
         ));
-    } else if method == CachedMethod::Anchors {
-        let samples = lookup_points(ctx, spp);
-        st.anchors = Some(super::anchors::update(
-            ctx,
-            cache,
-            state.anchors,
-            &pm,
-            params,
-            visibility,
-            &samples,
-            refresh.albedo,
-            &mut gt,
-        )?);
-    } else {
-        let samples = lookup_points(ctx, spp);
-        prepare_brute_force(ctx, cache, &params.cache, estimate, &samples, &mut gt);
     }
     st.final_gathering = gt.final_gathering;
     st.irradiance_estimation += gt.irradiance_estimation;
@@ -298,6 +313,7 @@ pub fn render_in_bands(
         glossy: params.glossy,
         pass: BucketPass::Shade(None),
         replay,
+        centres: centres.as_ref(),
     };
     let mut wall = 0.0;
     let mut planning = 0.0;
@@ -420,6 +436,7 @@ fn prepare_brute_force(
     cp: &CacheParams,
     estimate: GatherEstimate,
     samples: &[(u32, SurfacePoint)],
+    centres: &PixelCentres,
     gt: &mut GatherTimings,
 ) {
     let m = ctx.materials;
@@ -433,7 +450,7 @@ fn prepare_brute_force(
     // Samples no record covers gather on the spot in every frame, as brute force does
     // everywhere: no spot records.
     cache.place(
-        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, samples, false, &mut brute, gt,
+        ctx.scene, ctx.width, ctx.height, cp, ctx.frame, samples, centres, false, &mut brute, gt,
     );
 }
 
@@ -550,6 +567,9 @@ pub struct CachedShading<'a> {
     pass: BucketPass<'a>,
     /// The rays the pass replays and whether it logs its own ([`super::replay`]).
     replay: Replay<'a>,
+    /// What the pixel centres' rays hit, where this frame traced them already (a pixel
+    /// centre the replay holds reads it from there).
+    centres: Option<&'a PixelCentres>,
 }
 
 /// How the glossy lobe's indirect light is shaded at camera hits (paper §5, §7). Lobes
@@ -729,11 +749,6 @@ pub struct CachedPixel {
 /// exceeds this: a pixel's samples share one cache read (and one bucketing) only then.
 const SAME_FACING: f32 = 0.999;
 
-/// What a pixel centre's camera ray hit: the surface point, or nothing.
-fn trace_centre(ctx: &FrameContext, x: u32, y: u32) -> Option<SurfacePoint> {
-    centre_hit(ctx, x, y, None).1
-}
-
 /// The pixel centre's camera hit and surface point ([`camera_hit`]: `known` is a logged hit).
 fn centre_hit(
     ctx: &FrameContext,
@@ -798,12 +813,16 @@ impl CachedPixel {
 /// cache at its pixel centre, and inside the empty background none reads it. A feature
 /// smaller than a pixel that no centre sees is missed, and its samples gather on the spot
 /// when shaded.
-pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
+pub fn lookup_points(
+    ctx: &FrameContext,
+    spp: u32,
+    centres: &PixelCentres,
+) -> Vec<(u32, SurfacePoint)> {
     use rayon::prelude::*;
     let (w, h) = (ctx.width, ctx.height);
     let centres: Vec<Option<SurfacePoint>> = (0..w * h)
         .into_par_iter()
-        .map(|i| trace_centre(ctx, i % w, i / w))
+        .map(|i| centres.point(ctx.scene, i % w, i / w))
         .collect();
     let alike = |a: &Option<SurfacePoint>, b: &Option<SurfacePoint>| match (a, b) {
         (Some(a), Some(b)) => {
@@ -829,8 +848,11 @@ pub fn lookup_points(ctx: &FrameContext, spp: u32) -> Vec<(u32, SurfacePoint)> {
                 let index = y * w + x;
                 let mut pixel = CachedPixel::new(index, centres[index as usize], 0..0);
                 let sampler = super::pixel_sampler(ctx, x, y);
-                for s in 0..spp {
-                    let Some(sp) = super::camera_sample(ctx, &sampler, x, y, s).1 else {
+                let cameras = super::pixel_camera_hits(ctx, &sampler, (x, y), spp, |_| None);
+                for (ray, hit) in cameras {
+                    let Some(sp) =
+                        hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir))
+                    else {
                         continue;
                     };
                     let key = CachedShading::key(ctx, &sp);
@@ -962,7 +984,8 @@ impl Shade for CachedShading<'_> {
             BucketPass::Shade(Some(band)) => band.of_pixel(index),
             _ => 0..0,
         };
-        let (hit, centre) = centre_hit(ctx, x, y, self.replay.centre(index));
+        let known = (self.replay.centre(index)).or_else(|| self.centres.map(|c| c.hit(x, y)));
+        let (hit, centre) = centre_hit(ctx, x, y, known);
         if self.replay.log && x == 0 {
             let samples = (ctx.width * self.replay.spp * self.light_samples) as usize;
             let lengths = self
@@ -982,19 +1005,29 @@ impl Shade for CachedShading<'_> {
         CachedPixel::new(index, centre, plans)
     }
 
+    fn known_camera_hit(
+        &self,
+        ctx: &FrameContext,
+        (x, y, s): (u32, u32, u32),
+    ) -> Option<Option<crate::accel::Hit>> {
+        self.replay.sample(y * ctx.width + x, s)
+    }
+
     fn camera(
         &self,
         ctx: &FrameContext,
         row: &mut ShadeRow,
-        sampler: &crate::sampling::Sampler,
-        (x, y, s): (u32, u32, u32),
+        _sample: (u32, u32, u32),
+        ray: &crate::scene::CameraRay,
+        hit: Option<crate::accel::Hit>,
     ) -> (Vec3, Option<SurfacePoint>) {
-        let known = self.replay.sample(y * ctx.width + x, s);
-        let (dir, hit, sp) = super::camera_sample_hit(ctx, sampler, (x, y, s), known);
         if self.replay.log {
             row.log.sample(self.replay.logs_camera().then_some(hit));
         }
-        (dir, sp)
+        (
+            ray.dir,
+            hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir)),
+        )
     }
 
     fn sample(

@@ -29,15 +29,15 @@ use glam::Vec3;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::accel::Hit;
 use crate::anchor::AnchorParams;
 use crate::bsdf::{Bsdf, Lobes};
 use crate::cache::CacheParams;
 use crate::interaction::{
-    LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, camera_hit,
-    direct_light,
+    LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, direct_light,
 };
 use crate::sampling::{Dims, Sampler, Stream};
-use crate::scene::FrameScene;
+use crate::scene::{CameraRay, FrameScene};
 pub use film::{Accumulator, FrameImage, Pixel, PixelVariance, RenderCounts};
 
 /// Settings of the photon-mapping methods ([`GiParams::preset`] gives the presets).
@@ -272,16 +272,31 @@ pub trait Shade: Sync {
 
     fn begin_pixel(&self, ctx: &FrameContext, row: &mut Self::Row, x: u32, y: u32) -> Self::Pixel;
 
-    /// Camera sample `s` of pixel (x, y) ([`camera_sample`], which a method that keeps
-    /// camera hits replaces).
+    /// Camera sample `s` of pixel (x, y), whose ray is `ray` and which hit `hit`
+    /// ([`pixel_camera_hits`]): the ray's direction and the surface point (a method that
+    /// keeps camera hits logs them here).
     fn camera(
         &self,
         ctx: &FrameContext,
         _row: &mut Self::Row,
-        sampler: &Sampler,
-        (x, y, s): (u32, u32, u32),
+        _sample: (u32, u32, u32),
+        ray: &CameraRay,
+        hit: Option<Hit>,
     ) -> (Vec3, Option<SurfacePoint>) {
-        camera_sample(ctx, sampler, x, y, s)
+        (
+            ray.dir,
+            hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir)),
+        )
+    }
+
+    /// The hit of camera sample `s` of pixel (x, y) where it is known without tracing (a
+    /// logged render's, [`replay`]).
+    fn known_camera_hit(
+        &self,
+        _ctx: &FrameContext,
+        _sample: (u32, u32, u32),
+    ) -> Option<Option<Hit>> {
+        None
     }
 
     /// Shades one camera hit into `acc`.
@@ -300,34 +315,39 @@ pub fn pixel_sampler(ctx: &FrameContext, x: u32, y: u32) -> Sampler {
     Sampler::new(ctx.seed, ctx.frame, Stream::Camera, y * ctx.width + x)
 }
 
-/// Camera sample `s` of pixel (x, y), jittered over the pixel from its stream `sampler`
-/// ([`pixel_sampler`]): the ray's direction and what it hit.
-pub fn camera_sample(
+/// The rays of camera samples `0..spp` of pixel (x, y), each jittered over the pixel from
+/// its stream `sampler` ([`pixel_sampler`]), and what each hit: `known(s)` where it gives one, else traced, four samples of the pixel at a time
+/// ([`crate::interaction::camera_hits`]). The hits are those of each ray traced alone.
+pub fn pixel_camera_hits(
     ctx: &FrameContext,
     sampler: &Sampler,
-    x: u32,
-    y: u32,
-    s: u32,
-) -> (Vec3, Option<SurfacePoint>) {
-    let (dir, _, sp) = camera_sample_hit(ctx, sampler, (x, y, s), None);
-    (dir, sp)
-}
-
-/// [`camera_sample`] with the hit itself, found by tracing or given as `known` (a logged
-/// hit of the same ray, [`replay`]).
-pub fn camera_sample_hit(
-    ctx: &FrameContext,
-    sampler: &Sampler,
-    (x, y, s): (u32, u32, u32),
-    known: Option<Option<crate::accel::Hit>>,
-) -> (Vec3, Option<crate::accel::Hit>, Option<SurfacePoint>) {
-    let [jx, jy] = sampler.get2(s, DIM_JITTER);
-    camera_hit(
-        ctx.scene,
-        (x as f32 + jx) / ctx.width as f32,
-        (y as f32 + jy) / ctx.height as f32,
-        known,
-    )
+    (x, y): (u32, u32),
+    spp: u32,
+    known: impl Fn(u32) -> Option<Option<Hit>>,
+) -> Vec<(CameraRay, Option<Hit>)> {
+    let film = |s: u32| {
+        let [jx, jy] = sampler.get2(s, DIM_JITTER);
+        (
+            (x as f32 + jx) / ctx.width as f32,
+            (y as f32 + jy) / ctx.height as f32,
+        )
+    };
+    let known: Vec<Option<Option<Hit>>> = (0..spp).map(known).collect();
+    let unknown: Vec<(f32, f32)> = (0..spp)
+        .filter(|&s| known[s as usize].is_none())
+        .map(film)
+        .collect();
+    let mut traced = crate::interaction::camera_hits(ctx.scene, &unknown).into_iter();
+    (0..spp)
+        .zip(known)
+        .filter_map(|(s, known)| match known {
+            Some(hit) => {
+                let (fx, fy) = film(s);
+                Some((ctx.scene.camera.ray(fx, fy), hit))
+            }
+            None => traced.next(),
+        })
+        .collect()
 }
 
 /// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
@@ -358,8 +378,11 @@ pub fn render_pixel_rows<S: Shade>(
         let sampler = pixel_sampler(ctx, x, y);
         let mut acc = Accumulator::default();
         let mut pixel = method.begin_pixel(ctx, row, x, y);
-        for s in 0..spp {
-            let (d, sp) = method.camera(ctx, row, &sampler, (x, y, s));
+        let cameras = pixel_camera_hits(ctx, &sampler, (x, y), spp, |s| {
+            method.known_camera_hit(ctx, (x, y, s))
+        });
+        for (s, (ray, hit)) in (0..spp).zip(&cameras) {
+            let (d, sp) = method.camera(ctx, row, (x, y, s), ray, *hit);
             row.as_mut().camera_rays += 1;
             let Some(sp) = sp else {
                 continue;
