@@ -60,8 +60,9 @@ pub struct Table1 {
     pub cache_interpolation: f64,
     pub direct_lighting: f64,
     pub visibility: f64,
-    /// Everything else of a frame: `total` less the rows above (scene evaluation, BVHs,
-    /// depth maps, output, bookkeeping between phases).
+    /// Everything else of a frame: `total` less the rows above (scene evaluation, BVHs, the
+    /// camera rays of cache placement and of the lookup points, depth maps, output,
+    /// bookkeeping between phases).
     pub other: f64,
     pub total: f64,
 }
