@@ -425,8 +425,11 @@ impl Accel {
         let active = (0..4)
             .filter(|&i| rays[i].is_some())
             .fold(0u32, |m, i| m | 1 << i);
+        // A lane left out carries the first ray's origin, so that rays from one point keep
+        // the walk's one-origin arithmetic (`PairTree::closest4`).
+        let from = rays.iter().flatten().next().map_or(Vec3::ZERO, |r| r.0);
         let rays = rays.map(|r| {
-            let (o, dir, tmax) = r.unwrap_or((Vec3::ZERO, Vec3::Z, f32::INFINITY));
+            let (o, dir, tmax) = r.unwrap_or((from, Vec3::Z, f32::INFINITY));
             let dir = canonical(dir);
             (
                 Ray::new(o.into(), dir.into(), 0.0, tmax),

@@ -264,10 +264,12 @@ impl PairTree {
         }
     }
 
-    /// [`PairTree::closest`] for the rays of the lanes set in `active`, four neighbouring rays
-    /// (a record's gather rays through neighbouring strata, one pixel's camera samples): the
-    /// tree is walked once for all of them, each pair's two boxes tested against the four rays in SIMD lanes, a
-    /// subtree entered with the lanes that enter its box, a leaf tested for each of them. A
+    /// [`PairTree::closest`] for the rays of the lanes set in `active`, four neighbouring
+    /// rays (a record's gather rays through neighbouring strata, one pixel's camera
+    /// samples): the tree is walked once for all of them, each pair's two boxes tested
+    /// against the four rays in SIMD lanes, a subtree entered with the lanes that enter its
+    /// box, a leaf tested for each of them. Rays from one point (every lane's origin the
+    /// same) take the slab arithmetic with that origin subtracted once per plane. A
     /// lane's hit is the one [`PairTree::closest`] finds: every triangle its ray can meet
     /// lies in a box it enters, and the nearest hit does not depend on the order.
     pub(super) fn closest4(
