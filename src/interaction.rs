@@ -264,24 +264,37 @@ pub fn trace(frame: &FrameScene, o: Vec3, d: Vec3) -> Option<SurfacePoint> {
         .map(|h| SurfacePoint::new(frame, h, o, d))
 }
 
-/// The camera rays through film positions `film` (each in `[0, 1]²`, y down) and what they
-/// hit, traced four at a time ([`crate::accel::Accel::closest4_rays`]: one walk of the tree
-/// for four rays that run close together); each hit is the one [`camera_hit`] finds.
+/// A film position (in `[0, 1]²`, y down) and, where it is known without tracing, what its
+/// camera ray hits ([`camera_hits4`]).
+pub type FilmPosition = ((f32, f32), Option<Option<Hit>>);
+
+/// The camera rays through up to four film positions (each in `[0, 1]²`, y down) and what
+/// they hit, traced together ([`crate::accel::Accel::closest4_rays`]: one walk of the tree
+/// for four rays that run close together); each hit is the one [`camera_hit`] finds. A
+/// position that comes with its hit (`Some`: a logged render's, [`camera_hit`]'s `known`) is
+/// not traced.
+pub fn camera_hits4(
+    frame: &FrameScene,
+    film: [Option<FilmPosition>; 4],
+) -> [Option<(CameraRay, Option<Hit>)>; 4] {
+    let rays = film.map(|f| f.map(|((x, y), known)| (frame.camera.ray(x, y), known)));
+    let traced = frame.accel.closest4_rays(
+        &frame.static_geometry,
+        &frame.dynamic_geometry,
+        rays.map(|r| match r {
+            Some((r, None)) => Some((r.origin, r.dir, r.tmax)),
+            _ => None,
+        }),
+    );
+    std::array::from_fn(|i| rays[i].map(|(r, known)| (r, known.unwrap_or(traced[i]))))
+}
+
+/// [`camera_hits4`] for every position of `film`, four at a time.
 pub fn camera_hits(frame: &FrameScene, film: &[(f32, f32)]) -> Vec<(CameraRay, Option<Hit>)> {
     let mut out = Vec::with_capacity(film.len());
     for four in film.chunks(4) {
-        let rays: [Option<CameraRay>; 4] =
-            std::array::from_fn(|i| four.get(i).map(|&(x, y)| frame.camera.ray(x, y)));
-        let hits = frame.accel.closest4_rays(
-            &frame.static_geometry,
-            &frame.dynamic_geometry,
-            rays.map(|r| r.map(|r| (r.origin, r.dir, r.tmax))),
-        );
-        out.extend(
-            rays.into_iter()
-                .zip(hits)
-                .filter_map(|(r, h)| Some((r?, h))),
-        );
+        let four = std::array::from_fn(|i| four.get(i).map(|&f| (f, None)));
+        out.extend(camera_hits4(frame, four).into_iter().flatten());
     }
     out
 }

@@ -984,7 +984,10 @@ impl Shade for CachedShading<'_> {
             BucketPass::Shade(Some(band)) => band.of_pixel(index),
             _ => 0..0,
         };
-        let known = (self.replay.centre(index)).or_else(|| self.centres.map(|c| c.hit(x, y)));
+        let known = self
+            .replay
+            .centre(index)
+            .or_else(|| self.centres.map(|c| c.hit(x, y)));
         let (hit, centre) = centre_hit(ctx, x, y, known);
         if self.replay.log && x == 0 {
             let samples = (ctx.width * self.replay.spp * self.light_samples) as usize;
@@ -1013,21 +1016,10 @@ impl Shade for CachedShading<'_> {
         self.replay.sample(y * ctx.width + x, s)
     }
 
-    fn camera(
-        &self,
-        ctx: &FrameContext,
-        row: &mut ShadeRow,
-        _sample: (u32, u32, u32),
-        ray: &crate::scene::CameraRay,
-        hit: Option<crate::accel::Hit>,
-    ) -> (Vec3, Option<SurfacePoint>) {
+    fn log_camera_hit(&self, row: &mut ShadeRow, hit: Option<crate::accel::Hit>) {
         if self.replay.log {
             row.log.sample(self.replay.logs_camera().then_some(hit));
         }
-        (
-            ray.dir,
-            hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir)),
-        )
     }
 
     fn sample(

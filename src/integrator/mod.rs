@@ -272,22 +272,9 @@ pub trait Shade: Sync {
 
     fn begin_pixel(&self, ctx: &FrameContext, row: &mut Self::Row, x: u32, y: u32) -> Self::Pixel;
 
-    /// Camera sample `s` of pixel (x, y), whose ray is `ray` and which hit `hit`
-    /// ([`pixel_camera_hits`]): the ray's direction and the surface point (a method that
-    /// keeps camera hits logs them here).
-    fn camera(
-        &self,
-        ctx: &FrameContext,
-        _row: &mut Self::Row,
-        _sample: (u32, u32, u32),
-        ray: &CameraRay,
-        hit: Option<Hit>,
-    ) -> (Vec3, Option<SurfacePoint>) {
-        (
-            ray.dir,
-            hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir)),
-        )
-    }
+    /// Camera sample `s`'s hit as [`render_pixel_rows`] found it ([`pixel_camera_hits`]):
+    /// a method that keeps camera hits logs it here.
+    fn log_camera_hit(&self, _row: &mut Self::Row, _hit: Option<Hit>) {}
 
     /// The hit of camera sample `s` of pixel (x, y) where it is known without tracing (a
     /// logged render's, [`replay`]).
@@ -316,8 +303,9 @@ pub fn pixel_sampler(ctx: &FrameContext, x: u32, y: u32) -> Sampler {
 }
 
 /// The rays of camera samples `0..spp` of pixel (x, y), each jittered over the pixel from
-/// its stream `sampler` ([`pixel_sampler`]), and what each hit: `known(s)` where it gives one, else traced, four samples of the pixel at a time
-/// ([`crate::interaction::camera_hits`]). The hits are those of each ray traced alone.
+/// its stream `sampler` ([`pixel_sampler`]), and what each hit: `known(s)` where it gives
+/// one, else traced, four samples of the pixel at a time
+/// ([`crate::interaction::camera_hits4`]). The hits are those of each ray traced alone.
 pub fn pixel_camera_hits(
     ctx: &FrameContext,
     sampler: &Sampler,
@@ -332,22 +320,19 @@ pub fn pixel_camera_hits(
             (y as f32 + jy) / ctx.height as f32,
         )
     };
-    let known: Vec<Option<Option<Hit>>> = (0..spp).map(known).collect();
-    let unknown: Vec<(f32, f32)> = (0..spp)
-        .filter(|&s| known[s as usize].is_none())
-        .map(film)
-        .collect();
-    let mut traced = crate::interaction::camera_hits(ctx.scene, &unknown).into_iter();
-    (0..spp)
-        .zip(known)
-        .filter_map(|(s, known)| match known {
-            Some(hit) => {
-                let (fx, fy) = film(s);
-                Some((ctx.scene.camera.ray(fx, fy), hit))
-            }
-            None => traced.next(),
-        })
-        .collect()
+    let mut out = Vec::with_capacity(spp as usize);
+    for first in (0..spp).step_by(4) {
+        let four = std::array::from_fn(|i| {
+            let s = first + i as u32;
+            (s < spp).then(|| (film(s), known(s)))
+        });
+        out.extend(
+            crate::interaction::camera_hits4(ctx.scene, four)
+                .into_iter()
+                .flatten(),
+        );
+    }
+    out
 }
 
 /// The pixel loop every method shares: `spp` box-filtered camera samples per pixel, rows in
@@ -381,8 +366,9 @@ pub fn render_pixel_rows<S: Shade>(
         let cameras = pixel_camera_hits(ctx, &sampler, (x, y), spp, |s| {
             method.known_camera_hit(ctx, (x, y, s))
         });
-        for (s, (ray, hit)) in (0..spp).zip(&cameras) {
-            let (d, sp) = method.camera(ctx, row, (x, y, s), ray, *hit);
+        for (s, (ray, hit)) in (0..spp).zip(cameras) {
+            method.log_camera_hit(row, hit);
+            let sp = hit.map(|h| SurfacePoint::new(ctx.scene, h, ray.origin, ray.dir));
             row.as_mut().camera_rays += 1;
             let Some(sp) = sp else {
                 continue;
@@ -390,7 +376,7 @@ pub fn render_pixel_rows<S: Shade>(
             let hit = CameraHit {
                 sampler: &sampler,
                 sample: s,
-                dir: d,
+                dir: ray.dir,
                 sp,
             };
             let begun = acc.begin_sample();
