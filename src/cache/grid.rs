@@ -113,6 +113,17 @@ impl RecordGrid {
         });
     }
 
+    /// Whether `pred` holds for one of the records whose sphere may contain `x`: the
+    /// candidates of [`RecordGrid::with_candidates`] in the same order, read in place and
+    /// only up to the first that passes.
+    pub(super) fn any_candidate(&self, x: Vec3, mut pred: impl FnMut(u32) -> bool) -> bool {
+        self.levels.iter().any(|&(l, size)| {
+            self.cells
+                .get(&Self::cell_of_size(l, size, x))
+                .is_some_and(|c| c.iter().any(|&i| pred(i)))
+        })
+    }
+
     /// Calls `f` with the records whose sphere may contain `x` (level by level, each
     /// level's in index order; a record sits at one level), in a per-thread buffer that is
     /// not freed between calls.

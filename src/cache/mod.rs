@@ -471,9 +471,8 @@ impl IrradianceCache {
     /// True if a spot record is valid at (x, n) to a.
     fn spot_covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
         !self.records.is_empty()
-            && self.grid.with_candidates(x, |idx| {
-                idx.iter()
-                    .any(|&i| Self::spot_weight(&self.records[i as usize], x, n) > 1.0 / a)
+            && self.grid.any_candidate(x, |i| {
+                Self::spot_weight(&self.records[i as usize], x, n) > 1.0 / a
             })
     }
 
@@ -559,37 +558,43 @@ impl IrradianceCache {
 
     /// True if some record is valid at (x, n).
     pub fn covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
-        self.covers_with_slack(x, n, a, 1.0, 0)
+        self.covers_with_slack(x, n, a, 1.0, &[])
     }
 
-    /// True if some record is valid at (x, n) to a, or one whose id is below `older` and
-    /// none of whose strata reach a dynamic prim to `slack`·a
-    /// ([`CacheParams::coverage_slack`]).
-    fn covers_with_slack(&self, x: Vec3, n: Vec3, a: f32, slack: f32, older: u32) -> bool {
+    /// True if some record is valid at (x, n) to a, or one that `quiet` marks (by index) to
+    /// `slack`·a ([`CacheParams::coverage_slack`]).
+    fn covers_with_slack(&self, x: Vec3, n: Vec3, a: f32, slack: f32, quiet: &[bool]) -> bool {
         if self.records.is_empty() {
             return false;
         }
         let (strict, relaxed) = (1.0 / a, 1.0 / (slack * a));
-        self.grid.with_candidates(x, |idx| {
-            idx.iter().any(|&i| {
-                let r = &self.records[i as usize];
-                let w = Self::weight(r, x, n);
-                w > strict
-                    || (w > relaxed
-                        && r.id < older
-                        && !r.strata.iter().any(|s| s.flags() & HIT_DYNAMIC != 0))
-            })
+        self.grid.any_candidate(x, |i| {
+            let w = Self::weight(&self.records[i as usize], x, n);
+            w > strict || (w > relaxed && quiet.get(i as usize).copied().unwrap_or(false))
         })
+    }
+
+    /// Per record, whether none of its strata reach a dynamic prim: the records that cover to
+    /// [`CacheParams::coverage_slack`] in [`IrradianceCache::place`] (none where the slack is
+    /// 1, which relaxes nothing). Taken once before placement adds records (the new ones,
+    /// past its end, cover only to a), so that a record's strata are read once a frame, not
+    /// once for every point it is a candidate for.
+    fn quiet_records(&self, slack: f32) -> Vec<bool> {
+        if slack <= 1.0 {
+            return Vec::new();
+        }
+        self.records
+            .par_iter()
+            .map(|r| !r.strata.iter().any(|s| s.flags() & HIT_DYNAMIC != 0))
+            .collect()
     }
 
     /// True if an enclosed record ([`Record::enclosed`]) would be valid at (x, n) to a
     /// were it not enclosed.
     fn within_enclosed(&self, x: Vec3, n: Vec3, a: f32) -> bool {
-        self.grid.with_candidates(x, |idx| {
-            idx.iter().any(|&i| {
-                let r = &self.records[i as usize];
-                r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
-            })
+        self.grid.any_candidate(x, |i| {
+            let r = &self.records[i as usize];
+            r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
         })
     }
 
@@ -650,7 +655,7 @@ impl IrradianceCache {
         let mut spacing = coarsest;
         // The records of earlier frames that see no dynamic prim cover to the slack
         // threshold; the others, to a.
-        let older = self.next_id;
+        let quiet = self.quiet_records(p.coverage_slack);
         loop {
             let level_first = spacing == coarsest;
             let candidates: Vec<(u32, u32)> = (0..height)
@@ -667,7 +672,7 @@ impl IrradianceCache {
                         sp.ns,
                         p.error,
                         p.coverage_slack,
-                        older,
+                        &quiet,
                     );
                     (!covered).then_some((y * width + x, sp))
                 })

