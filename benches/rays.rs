@@ -11,6 +11,10 @@
 //! `Accel::closest` keeping the lower triangle index).
 //!
 //! `cargo bench --bench rays -- benches/sponza/job.json`
+//!
+//! With `--dump DIR` it also writes the scene's triangles, the gather rays, their 2 × 2
+//! packets and `Accel::closest`'s hits to `DIR` (little-endian raw arrays; layout in
+//! `benches/embree_trace.c`), for that program to trace the same rays with Embree.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -65,11 +69,33 @@ fn rate(n: usize, seconds: f64) -> f64 {
     n as f64 / seconds / 1e6
 }
 
+/// Writes `values` to `dir/name` as little-endian 32-bit words.
+fn dump(dir: &std::path::Path, name: &str, values: impl Iterator<Item = [u8; 4]>) {
+    let bytes: Vec<u8> = values.flatten().collect();
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+}
+
+/// The triangles of `g` as nine f32 each.
+fn triangle_words(g: &Geometry) -> impl Iterator<Item = [u8; 4]> + '_ {
+    g.triangles
+        .iter()
+        .flat_map(|t| [t.v0, t.v1, t.v2])
+        .flat_map(|v| v.to_array())
+        .map(f32::to_le_bytes)
+}
+
 fn main() {
-    let path = std::env::args()
-        .skip(1)
-        .find(|a| !a.starts_with("--"))
-        .unwrap_or_else(|| "benches/sponza/job.json".into());
+    let mut path = "benches/sponza/job.json".to_string();
+    let mut dump_dir = None;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        if a == "--dump" {
+            dump_dir = args.next().map(std::path::PathBuf::from);
+        } else if !a.starts_with("--") {
+            path = a;
+        }
+    }
     let job = anchorage::job::Job::load(std::path::Path::new(&path), &Default::default())
         .unwrap_or_else(|e| panic!("{e}"));
     let scene = job.load_scene().unwrap_or_else(|e| panic!("{e}"));
@@ -132,6 +158,41 @@ fn main() {
                 }
                 debug_assert!(rays[first..].iter().all(|r| r.0 == o));
             }
+        }
+        if let Some(dir) = dump_dir.take() {
+            std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
+            dump(&dir, "static.bin", triangle_words(&fs.static_geometry));
+            dump(&dir, "dynamic.bin", triangle_words(&fs.dynamic_geometry));
+            let words = rays.iter().flat_map(|(o, d)| [o.to_array(), d.to_array()]);
+            dump(&dir, "rays.bin", words.flatten().map(f32::to_le_bytes));
+            let lanes = packets
+                .iter()
+                .flat_map(|(_, l)| l.map(|i| i.map_or(-1, |i| i as i32)));
+            dump(&dir, "packets.bin", lanes.map(i32::to_le_bytes));
+            // Per ray: distance (infinite on a miss), set (0 static, 1 dynamic, -1 none) and
+            // triangle (-1 on a miss).
+            let hits = rays.iter().flat_map(|&(o, d)| {
+                let h = Accel::closest(
+                    &fs.accel,
+                    &fs.static_geometry,
+                    &fs.dynamic_geometry,
+                    o,
+                    d,
+                    f32::INFINITY,
+                );
+                let (t, set, i) = h.map_or((f32::INFINITY, -1, -1), |h| {
+                    (
+                        h.t,
+                        i32::from(h.motion == Motion::Dynamic),
+                        h.triangle as i32,
+                    )
+                });
+                [t.to_le_bytes(), set.to_le_bytes(), i.to_le_bytes()]
+            });
+            dump(&dir, "hits.bin", hits);
+            let short = 0.1 * fs.static_radius();
+            dump(&dir, "short.bin", std::iter::once(short.to_le_bytes()));
+            println!("wrote {} rays to {}", rays.len(), dir.display());
         }
         let short = 0.1 * fs.static_radius();
         let (mut ours, mut theirs, mut occluded) = (f64::MAX, f64::MAX, f64::MAX);
