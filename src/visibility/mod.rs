@@ -556,9 +556,10 @@ pub fn cover(
 
 /// The cells [`cover`] may set for any triangle of a prim whose sphere cap is `sphere`: those
 /// with a quarter whose cap meets the sphere's, the test every cell [`cover`] sets has passed.
-/// Every cell is tested, not only those an enumeration reaches, so the set holds whatever
-/// [`cover`] sets. Once a record's bits hold all of them, the prim's other triangles can set
-/// nothing more ([`CpuVisibility`] stops there).
+/// The cells are not those an enumeration reaches but all of them, less the half-rows that
+/// cannot pass (below), so the set holds whatever [`cover`] sets. Once a record's bits hold
+/// all of them, the prim's other triangles can set nothing more ([`CpuVisibility`] stops
+/// there).
 ///
 /// A half-row none of whose quarters can pass is skipped whole: its quarters' centres share
 /// its elevation θ, so none is nearer the cap's axis than cos θ·z + sin θ·ρ allows (z and ρ
