@@ -159,6 +159,7 @@ fn main() {
                 debug_assert!(rays[first..].iter().all(|r| r.0 == o));
             }
         }
+        let short = 0.1 * fs.static_radius();
         if let Some(dir) = dump_dir.take() {
             std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
             dump(&dir, "static.bin", triangle_words(&fs.static_geometry));
@@ -190,11 +191,9 @@ fn main() {
                 [t.to_le_bytes(), set.to_le_bytes(), i.to_le_bytes()]
             });
             dump(&dir, "hits.bin", hits);
-            let short = 0.1 * fs.static_radius();
             dump(&dir, "short.bin", std::iter::once(short.to_le_bytes()));
             println!("wrote {} rays to {}", rays.len(), dir.display());
         }
-        let short = 0.1 * fs.static_radius();
         let (mut ours, mut theirs, mut occluded) = (f64::MAX, f64::MAX, f64::MAX);
         let (mut d_ours, mut d_theirs, mut blocked) = (0, 0, 0);
         let (mut fours, mut d_fours) = (f64::MAX, 0);

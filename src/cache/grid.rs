@@ -113,15 +113,19 @@ impl RecordGrid {
         });
     }
 
+    /// The lists of the cells that hold `x`, one per level in use, in level order: the
+    /// records whose sphere may contain `x` (a record sits at one level).
+    fn lists_at(&self, x: Vec3) -> impl Iterator<Item = &Vec<u32>> {
+        self.levels
+            .iter()
+            .filter_map(move |&(l, size)| self.cells.get(&Self::cell_of_size(l, size, x)))
+    }
+
     /// Whether `pred` holds for one of the records whose sphere may contain `x`: the
     /// candidates of [`RecordGrid::with_candidates`] in the same order, read in place and
     /// only up to the first that passes.
     pub(super) fn any_candidate(&self, x: Vec3, mut pred: impl FnMut(u32) -> bool) -> bool {
-        self.levels.iter().any(|&(l, size)| {
-            self.cells
-                .get(&Self::cell_of_size(l, size, x))
-                .is_some_and(|c| c.iter().any(|&i| pred(i)))
-        })
+        self.lists_at(x).flatten().any(|&i| pred(i))
     }
 
     /// Calls `f` with the records whose sphere may contain `x` (level by level, each
@@ -133,11 +137,7 @@ impl RecordGrid {
         }
         let fill = |out: &mut Vec<u32>| {
             out.clear();
-            for &(l, size) in &self.levels {
-                if let Some(c) = self.cells.get(&Self::cell_of_size(l, size, x)) {
-                    out.extend_from_slice(c);
-                }
-            }
+            self.lists_at(x).for_each(|c| out.extend_from_slice(c));
         };
         BUFFER.with(|cell| match cell.try_borrow_mut() {
             Ok(mut out) => {

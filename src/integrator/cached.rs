@@ -219,46 +219,48 @@ pub fn render_in_bands(
     cache.set_params(&params.cache);
     let first_id = cache.next_id();
     // What the camera sees at the pixel centres, traced once for placement, the lookup
-    // points and the shading pass (a relight reads the hits its log keeps instead).
-    let centres = (!(method == CachedMethod::Anchors && refresh.relight_only))
-        .then(|| PixelCentres::trace(ctx.scene, ctx.width, ctx.height));
-    if let Some(centres) = &centres
-        && method == CachedMethod::Anchors
-    {
-        let samples = lookup_points(ctx, spp, centres);
-        st.anchors = Some(super::anchors::update(
-            ctx,
-            cache,
-            state.anchors,
-            &pm,
-            params,
-            visibility,
-            &samples,
-            centres,
-            refresh.albedo,
-            &mut gt,
-        )?);
-    } else if let Some(centres) = &centres {
-        let samples = lookup_points(ctx, spp, centres);
-        prepare_brute_force(
-            ctx,
-            cache,
-            &params.cache,
-            estimate,
-            &samples,
-            centres,
-            &mut gt,
-        );
-    } else {
-        st.anchors = Some(super::anchors::relight(
-            ctx,
-            cache,
-            state.anchors,
-            &pm,
-            params,
-            refresh.albedo,
-            &mut gt,
-        ));
+    // points and the shading pass; a relight reads the hits its log keeps instead.
+    let relight = method == CachedMethod::Anchors && refresh.relight_only;
+    let centres = (!relight).then(|| PixelCentres::trace(ctx.scene, ctx.width, ctx.height));
+    match &centres {
+        None => {
+            st.anchors = Some(super::anchors::relight(
+                ctx,
+                cache,
+                state.anchors,
+                &pm,
+                params,
+                refresh.albedo,
+                &mut gt,
+            ));
+        }
+        Some(centres) if method == CachedMethod::Anchors => {
+            let samples = lookup_points(ctx, spp, centres);
+            st.anchors = Some(super::anchors::update(
+                ctx,
+                cache,
+                state.anchors,
+                &pm,
+                params,
+                visibility,
+                &samples,
+                centres,
+                refresh.albedo,
+                &mut gt,
+            )?);
+        }
+        Some(centres) => {
+            let samples = lookup_points(ctx, spp, centres);
+            prepare_brute_force(
+                ctx,
+                cache,
+                &params.cache,
+                estimate,
+                &samples,
+                centres,
+                &mut gt,
+            );
+        }
     }
     st.final_gathering = gt.final_gathering;
     st.irradiance_estimation += gt.irradiance_estimation;
@@ -820,7 +822,7 @@ pub fn lookup_points(
 ) -> Vec<(u32, SurfacePoint)> {
     use rayon::prelude::*;
     let (w, h) = (ctx.width, ctx.height);
-    let centres: Vec<Option<SurfacePoint>> = (0..w * h)
+    let centre_points: Vec<Option<SurfacePoint>> = (0..w * h)
         .into_par_iter()
         .map(|i| centres.point(ctx.scene, i % w, i / w))
         .collect();
@@ -832,12 +834,12 @@ pub fn lookup_points(
         _ => false,
     };
     let uniform = |x: u32, y: u32| {
-        let c = &centres[(y * w + x) as usize];
+        let c = &centre_points[(y * w + x) as usize];
         [(-1, 0), (1, 0), (0, -1), (0, 1)].iter().all(|&(dx, dy)| {
             let (u, v) = (x as i64 + dx, y as i64 + dy);
             !(0..w as i64).contains(&u)
                 || !(0..h as i64).contains(&v)
-                || alike(c, &centres[(v * w as i64 + u) as usize])
+                || alike(c, &centre_points[(v * w as i64 + u) as usize])
         })
     };
     (0..h)
@@ -846,7 +848,7 @@ pub fn lookup_points(
             let mut points = Vec::new();
             for x in (0..w).filter(|&x| !uniform(x, y)) {
                 let index = y * w + x;
-                let mut pixel = CachedPixel::new(index, centres[index as usize], 0..0);
+                let mut pixel = CachedPixel::new(index, centre_points[index as usize], 0..0);
                 let sampler = super::pixel_sampler(ctx, x, y);
                 let cameras = super::pixel_camera_hits(ctx, &sampler, (x, y), spp, |_| None);
                 for (ray, hit) in cameras {
