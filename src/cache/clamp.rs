@@ -180,7 +180,7 @@ impl IrradianceCache {
             .fold(
                 || start.clone(),
                 |mut reach, j| {
-                    grid(j).with_candidates(points[j].0, |idx| {
+                    grid(j).with_candidates(points[j].0, REACH * a, |idx| {
                         for &i in idx {
                             if i as usize != j
                                 && let Some(cap) =
@@ -227,7 +227,7 @@ impl IrradianceCache {
     /// record at `x` may clamp.
     fn within_reach_of(&self, x: Vec3) -> Vec<u32> {
         let a = self.clamp_error();
-        self.ward.with_candidates(x, |idx| {
+        self.ward.with_candidates(x, REACH * a, |idx| {
             idx.iter()
                 .copied()
                 .filter(|&i| {
@@ -486,5 +486,97 @@ mod tests {
             }
         }
         assert_eq!(reclamped, 6, "every round is brought up to date in place");
+    }
+
+    /// The grids pass over the records whose spheres cannot hold a point without reading
+    /// them (`grid::Entry`): every clamped radius, every lookup and every coverage test
+    /// equals a pass over all the records, at points on the edges of their spheres too.
+    #[test]
+    fn lookups_and_clamps_equal_a_pass_over_every_record() {
+        use crate::sampling::hash;
+        let unit = |h: u32, shift: u32| (h >> shift & 1023) as f32 / 1023.0;
+        let place = |i: u32| {
+            let h = hash(&[i, 5]);
+            let (u, v) = (2.0 * unit(h, 0), 2.0 * unit(h, 10));
+            match i % 3 {
+                0 => (Vec3::new(u, 0.0, v), Vec3::Y),
+                1 => (Vec3::new(0.0, u, v), Vec3::X),
+                _ => (Vec3::new(u, v, 0.0), -Vec3::Z),
+            }
+        };
+        let records: Vec<Record> = (0..400u32)
+            .map(|i| {
+                let (p, n) = place(i);
+                let mut r = Record::bare(p, n, 0.01 + 0.4 * unit(hash(&[i, 6]), 0));
+                r.enclosed = i % 23 == 0;
+                r.spot = i % 31 == 1;
+                r
+            })
+            .collect();
+        let (a, slope) = (0.25, 2.0);
+        let mut cache = IrradianceCache::default();
+        cache.set_params(&CacheParams {
+            error: a,
+            neighbour_clamp: slope,
+            ..CacheParams::default()
+        });
+        // Half the records at first, the rest added: both paths of the clamp.
+        cache.replace_records(records[..200].to_vec());
+        cache.append(records[200..].to_vec());
+        let rs = &cache.records;
+        for (i, r) in rs.iter().enumerate() {
+            let lowest = rs
+                .iter()
+                .enumerate()
+                .filter(|&(j, o)| j != i && o.is_open())
+                .filter_map(|(_, o)| {
+                    let (pi, pj) = (
+                        (r.position, r.normal, r.radius),
+                        (o.position, o.normal, o.radius),
+                    );
+                    clamp_cap(pi, pj, slope, a)
+                })
+                .fold(r.radius, f32::min);
+            assert_eq!(r.reach_radius, lowest, "record {i}");
+        }
+        let quiet: Vec<bool> = (0..rs.len()).map(|i| i % 2 == 0).collect();
+        // Random points, and points on each record's surface at its sphere's edge.
+        let mut points: Vec<(Vec3, Vec3)> = (0..300).map(|q| place(10_000 + q)).collect();
+        for r in rs {
+            let t = r.normal.any_orthonormal_vector();
+            for f in [0.5, 0.999, 1.0 - 1e-6, 1.0, 1.0 + 1e-6, 1.001, 1.5] {
+                for reach in [a * r.reach_radius, REACH * a * r.reach_radius] {
+                    points.push((r.position + t * (reach * f), r.normal));
+                }
+            }
+        }
+        for (x, n) in points {
+            for t in [a, REACH * a] {
+                let valid = |i: usize| IrradianceCache::weight(&rs[i], x, n) > 1.0 / t;
+                let all: Vec<u32> = (0..rs.len())
+                    .filter(|&i| valid(i))
+                    .map(|i| i as u32)
+                    .collect();
+                assert_eq!(cache.valid_records(x, n, t), all, "at {x}, a {t}");
+                // Placement's coverage: to a, or to the slack (at most `REACH`) for the quiet.
+                if t == a {
+                    let loose =
+                        |i: usize| IrradianceCache::weight(&rs[i], x, n) > 1.0 / (REACH * t);
+                    let covered = (0..rs.len()).any(|i| valid(i) || (quiet[i] && loose(i)));
+                    assert_eq!(
+                        cache.covers_with_slack(x, n, t, REACH, &quiet),
+                        covered,
+                        "at {x}"
+                    );
+                }
+                let enclosed = rs.iter().any(|r| {
+                    r.enclosed && !r.spot && IrradianceCache::ward_weight(r, x, n) > 1.0 / t
+                });
+                assert_eq!(cache.within_enclosed(x, n, t), enclosed, "at {x}, a {t}");
+                let spot =
+                    (0..rs.len()).any(|i| IrradianceCache::spot_weight(&rs[i], x, n) > 1.0 / t);
+                assert_eq!(cache.spot_covers(x, n, t), spot, "at {x}, a {t}");
+            }
+        }
     }
 }

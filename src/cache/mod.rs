@@ -128,8 +128,9 @@ pub struct IrradianceCache {
     neighbour_clamp: f32,
 }
 
-/// Bytes of the grid entries of one record: up to eight cells hold its index.
-const CELL_ENTRIES: usize = 8 * 4;
+/// Bytes of the grid entries of one record: up to eight cells of each of the two grids
+/// hold it.
+const CELL_ENTRIES: usize = 2 * 8 * size_of::<grid::Entry>();
 
 /// The points of `pending` (pixel index, surface point; in order) to gather in one round of
 /// [`IrradianceCache::place_at_samples`]: each with no point taken before it within
@@ -246,10 +247,9 @@ pub fn pixel_footprint(camera: &FrameCamera, x: Vec3, height: u32) -> f32 {
 }
 
 impl IrradianceCache {
-    /// Bytes the cache holds on the heap: records, their strata, and about eight grid cell
-    /// entries per record.
+    /// Bytes the cache holds on the heap: records, their strata, and about eight cell
+    /// entries per record in each grid.
     pub fn heap_bytes(&self) -> usize {
-        // Eight grid entries per record: `CELL_ENTRIES` bytes.
         self.records.len() * (size_of::<Record>() + CELL_ENTRIES)
             + self
                 .records
@@ -423,7 +423,7 @@ impl IrradianceCache {
         // The valid records' weights and values, summed in index order (whatever order the
         // grid's cells hand them out in): sorting the few valid ones is cheaper than sorting
         // every candidate.
-        self.grid.with_candidates(x, |idx| {
+        self.grid.with_candidates(x, a, |idx| {
             for &i in idx {
                 let r = &self.records[i as usize];
                 let w = weight(r, x, n);
@@ -471,7 +471,7 @@ impl IrradianceCache {
     /// True if a spot record is valid at (x, n) to a.
     fn spot_covers(&self, x: Vec3, n: Vec3, a: f32) -> bool {
         !self.records.is_empty()
-            && self.grid.any_candidate(x, |i| {
+            && self.grid.any_candidate(x, a, |i| {
                 Self::spot_weight(&self.records[i as usize], x, n) > 1.0 / a
             })
     }
@@ -546,7 +546,7 @@ impl IrradianceCache {
         if self.records.is_empty() {
             return Vec::new();
         }
-        let mut valid: Vec<u32> = self.grid.with_candidates(x, |idx| {
+        let mut valid: Vec<u32> = self.grid.with_candidates(x, a, |idx| {
             idx.iter()
                 .copied()
                 .filter(|&i| Self::weight(&self.records[i as usize], x, n) > 1.0 / a)
@@ -568,7 +568,7 @@ impl IrradianceCache {
             return false;
         }
         let (strict, relaxed) = (1.0 / a, 1.0 / (slack * a));
-        self.grid.any_candidate(x, |i| {
+        self.grid.any_candidate(x, a * slack.max(1.0), |i| {
             let w = Self::weight(&self.records[i as usize], x, n);
             w > strict || (w > relaxed && quiet.get(i as usize).copied().unwrap_or(false))
         })
@@ -592,7 +592,7 @@ impl IrradianceCache {
     /// True if an enclosed record ([`Record::enclosed`]) would be valid at (x, n) to a
     /// were it not enclosed.
     fn within_enclosed(&self, x: Vec3, n: Vec3, a: f32) -> bool {
-        self.grid.any_candidate(x, |i| {
+        self.grid.any_candidate(x, a, |i| {
             let r = &self.records[i as usize];
             r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
         })
