@@ -22,9 +22,11 @@ pub(super) const REACH: f32 = 2.0;
 
 /// A record in a cell: its index and the sphere it was put there with (its position and
 /// the radius given to [`RecordGrid::insert`]), so that a lookup passes over the records
-/// whose sphere cannot hold its point without reading them. A cell holds records from up
-/// to twice its width away, of which a lookup at Ward's a finds a few valid: some 170
-/// candidates for 3 valid records at Sponza's pixels (640×360, production).
+/// whose sphere cannot hold its point without reading them. A cell holds every record whose
+/// sphere, relaxed `REACH`-fold and at a level whose cells are up to twice its diameter,
+/// overlaps it, and on a surface a lookup at Ward's a finds few of them valid: at Sponza's
+/// pixels (640×360, production) an interpolation met some 170 candidates for 3 valid
+/// records, each of them read from its whole `Record` to be rejected.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Entry {
     centre: Vec3,
