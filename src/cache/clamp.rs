@@ -411,22 +411,30 @@ mod tests {
         }
     }
 
+    /// 10 bits of `h` from bit `shift` on, as a fraction in [0, 1].
+    fn unit(h: u32, shift: u32) -> f32 {
+        (h >> shift & 1023) as f32 / 1023.0
+    }
+
+    /// A point on a floor or on one of two walls that meet it (by `i % 3`), within `size` of
+    /// their common corner by the hash of `i` and `salt`, and the surface's normal.
+    fn on_floor_or_wall(i: u32, salt: u32, size: f32) -> (Vec3, Vec3) {
+        let h = crate::sampling::hash(&[i, salt]);
+        let (u, v) = (size * unit(h, 0), size * unit(h, 10));
+        match i % 3 {
+            0 => (Vec3::new(u, 0.0, v), Vec3::Y),
+            1 => (Vec3::new(0.0, u, v), Vec3::X),
+            _ => (Vec3::new(u, v, 0.0), Vec3::Z),
+        }
+    }
+
     #[test]
     fn radii_brought_up_to_date_in_place_equal_a_full_pass() {
         // Records on a floor and two walls that meet it, some enclosed; then rounds in which
         // a few Ward radii grow or shrink and a few records turn enclosed or back, as re-shot
         // strata change them, and a few records are removed.
         use crate::sampling::hash;
-        let unit = |h: u32, shift: u32| (h >> shift & 1023) as f32 / 1023.0;
-        let place = |i: u32| {
-            let h = hash(&[i, 3]);
-            let (u, v) = (4.0 * unit(h, 0), 4.0 * unit(h, 10));
-            match i % 3 {
-                0 => (Vec3::new(u, 0.0, v), Vec3::Y),
-                1 => (Vec3::new(0.0, u, v), Vec3::X),
-                _ => (Vec3::new(u, v, 0.0), Vec3::Z),
-            }
-        };
+        let place = |i: u32| on_floor_or_wall(i, 3, 4.0);
         let records: Vec<Record> = (0..900u32)
             .map(|i| {
                 let (p, n) = place(i);
@@ -494,16 +502,7 @@ mod tests {
     #[test]
     fn lookups_and_clamps_equal_a_pass_over_every_record() {
         use crate::sampling::hash;
-        let unit = |h: u32, shift: u32| (h >> shift & 1023) as f32 / 1023.0;
-        let place = |i: u32| {
-            let h = hash(&[i, 5]);
-            let (u, v) = (2.0 * unit(h, 0), 2.0 * unit(h, 10));
-            match i % 3 {
-                0 => (Vec3::new(u, 0.0, v), Vec3::Y),
-                1 => (Vec3::new(0.0, u, v), Vec3::X),
-                _ => (Vec3::new(u, v, 0.0), -Vec3::Z),
-            }
-        };
+        let place = |i: u32| on_floor_or_wall(i, 5, 2.0);
         let records: Vec<Record> = (0..400u32)
             .map(|i| {
                 let (p, n) = place(i);
