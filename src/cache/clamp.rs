@@ -411,6 +411,13 @@ mod tests {
         }
     }
 
+    /// The records valid at (x, n) to `a`, by a pass over all of them.
+    fn valid_by_pass(cache: &IrradianceCache, x: Vec3, n: Vec3, a: f32) -> Vec<u32> {
+        (0..cache.records.len() as u32)
+            .filter(|&i| IrradianceCache::weight(&cache.records[i as usize], x, n) > 1.0 / a)
+            .collect()
+    }
+
     /// 10 bits of `h` from bit `shift` on, as a fraction in [0, 1].
     fn unit(h: u32, shift: u32) -> f32 {
         (h >> shift & 1023) as f32 / 1023.0
@@ -486,9 +493,16 @@ mod tests {
             assert_eq!(reach(&cache), reach(&full), "round {round}");
             for q in 0..300u32 {
                 let (p, n) = place(10_000 + q);
+                let valid = cache.valid_records(p, n, REACH * 0.25);
                 assert_eq!(
-                    cache.valid_records(p, n, REACH * 0.25),
+                    valid,
                     full.valid_records(p, n, REACH * 0.25),
+                    "round {round}, lookup {q}"
+                );
+                // Records moved and renumbered in place: the grids still find every one.
+                assert_eq!(
+                    valid,
+                    valid_by_pass(&cache, p, n, REACH * 0.25),
                     "round {round}, lookup {q}"
                 );
             }
@@ -529,11 +543,8 @@ mod tests {
                 .enumerate()
                 .filter(|&(j, o)| j != i && o.is_open())
                 .filter_map(|(_, o)| {
-                    let (pi, pj) = (
-                        (r.position, r.normal, r.radius),
-                        (o.position, o.normal, o.radius),
-                    );
-                    clamp_cap(pi, pj, slope, a)
+                    let at = |r: &Record| (r.position, r.normal, r.radius);
+                    clamp_cap(at(r), at(o), slope, a)
                 })
                 .fold(r.radius, f32::min);
             assert_eq!(r.reach_radius, lowest, "record {i}");
@@ -552,10 +563,7 @@ mod tests {
         for (x, n) in points {
             for t in [a, REACH * a] {
                 let valid = |i: usize| IrradianceCache::weight(&rs[i], x, n) > 1.0 / t;
-                let all: Vec<u32> = (0..rs.len())
-                    .filter(|&i| valid(i))
-                    .map(|i| i as u32)
-                    .collect();
+                let all = valid_by_pass(&cache, x, n, t);
                 assert_eq!(cache.valid_records(x, n, t), all, "at {x}, a {t}");
                 // Placement's coverage: to a, or to the slack (at most `REACH`) for the quiet.
                 if t == a {

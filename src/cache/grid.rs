@@ -95,9 +95,16 @@ impl RecordGrid {
     }
 
     /// Adds record `i` at `position` with validity radius `radius` (its R_i) to its cells,
-    /// `at` choosing its place in each cell's list, and its level to the ones lookups read.
-    fn add(&mut self, position: Vec3, radius: f32, at: impl Fn(&mut Vec<Entry>)) {
-        let level = self.for_cells(position, radius, |g, c| at(g.cells.entry(c).or_default()));
+    /// `at` putting its entry in each cell's list, and its level to the ones lookups read.
+    fn add(&mut self, i: u32, position: Vec3, radius: f32, at: impl Fn(&mut Vec<Entry>, Entry)) {
+        let e = Entry {
+            centre: position,
+            radius,
+            index: i,
+        };
+        let level = self.for_cells(position, radius, |g, c| {
+            at(g.cells.entry(c).or_default(), e)
+        });
         if let Err(at) = self.levels.binary_search_by_key(&level, |l| l.0) {
             self.levels.insert(at, (level, self.size(level)));
         }
@@ -106,23 +113,13 @@ impl RecordGrid {
     /// Adds record `i` at `position` with validity radius `radius` (its R_i), after the
     /// records already in its cells (a grid filled in index order keeps each cell in it).
     pub(super) fn insert(&mut self, i: u32, position: Vec3, radius: f32) {
-        let e = Entry {
-            centre: position,
-            radius,
-            index: i,
-        };
-        self.add(position, radius, |list| list.push(e));
+        self.add(i, position, radius, |list, e| list.push(e));
     }
 
     /// Adds record `i` like [`RecordGrid::insert`], at its place in index order in each
     /// cell.
     pub(super) fn insert_sorted(&mut self, i: u32, position: Vec3, radius: f32) {
-        let e = Entry {
-            centre: position,
-            radius,
-            index: i,
-        };
-        self.add(position, radius, |list| {
+        self.add(i, position, radius, |list, e| {
             let at = list.partition_point(|j| j.index < i);
             list.insert(at, e);
         });
@@ -179,9 +176,11 @@ impl RecordGrid {
     }
 
     /// Calls `f` with the records whose sphere, `factor` times the radius they were put in
-    /// with, may contain `x` (a record valid at `x` to Ward's a is among those of factor a:
-    /// its clamped radius is at most the one it sits in the grid by), level by level, each
-    /// level's in index order, in a per-thread buffer that is not freed between calls.
+    /// with, may contain `x` (a test of a distance under `factor` times a radius no larger
+    /// than that one passes only those: the lookup grid's clamped radii, which shrink in
+    /// place and move when they grow; the Ward radii of the clamping grids, put in again
+    /// when they change), level by level, each level's in index order, in a per-thread
+    /// buffer that is not freed between calls.
     pub(super) fn with_candidates<R>(
         &self,
         x: Vec3,
