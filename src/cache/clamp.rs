@@ -435,6 +435,18 @@ mod tests {
         }
     }
 
+    /// `count` records placed by [`on_floor_or_wall`] with `salt` and `size`, their Ward
+    /// radii from `radii.0` to `radii.0 + radii.1` by the hash of their index and `salt + 1`.
+    fn floor_and_wall_records(count: u32, salt: u32, size: f32, radii: (f32, f32)) -> Vec<Record> {
+        (0..count)
+            .map(|i| {
+                let (p, n) = on_floor_or_wall(i, salt, size);
+                let h = crate::sampling::hash(&[i, salt + 1]);
+                Record::bare(p, n, radii.0 + radii.1 * unit(h, 0))
+            })
+            .collect()
+    }
+
     #[test]
     fn radii_brought_up_to_date_in_place_equal_a_full_pass() {
         // Records on a floor and two walls that meet it, some enclosed; then rounds in which
@@ -442,14 +454,10 @@ mod tests {
         // strata change them, and a few records are removed.
         use crate::sampling::hash;
         let place = |i: u32| on_floor_or_wall(i, 3, 4.0);
-        let records: Vec<Record> = (0..900u32)
-            .map(|i| {
-                let (p, n) = place(i);
-                let mut r = Record::bare(p, n, 0.02 + 0.5 * unit(hash(&[i, 4]), 0));
-                r.enclosed = i % 37 == 0;
-                r
-            })
-            .collect();
+        let mut records = floor_and_wall_records(900, 3, 4.0, (0.02, 0.5));
+        for (i, r) in records.iter_mut().enumerate() {
+            r.enclosed = i % 37 == 0;
+        }
         let params = CacheParams {
             error: 0.25,
             neighbour_clamp: 2.0,
@@ -515,17 +523,12 @@ mod tests {
     /// equals a pass over all the records, at points on the edges of their spheres too.
     #[test]
     fn lookups_and_clamps_equal_a_pass_over_every_record() {
-        use crate::sampling::hash;
         let place = |i: u32| on_floor_or_wall(i, 5, 2.0);
-        let records: Vec<Record> = (0..400u32)
-            .map(|i| {
-                let (p, n) = place(i);
-                let mut r = Record::bare(p, n, 0.01 + 0.4 * unit(hash(&[i, 6]), 0));
-                r.enclosed = i % 23 == 0;
-                r.spot = i % 31 == 1;
-                r
-            })
-            .collect();
+        let mut records = floor_and_wall_records(400, 5, 2.0, (0.01, 0.4));
+        for (i, r) in records.iter_mut().enumerate() {
+            r.enclosed = i % 23 == 0;
+            r.spot = i % 31 == 1;
+        }
         let (a, slope) = (0.25, 2.0);
         let mut cache = IrradianceCache::default();
         cache.set_params(&CacheParams {
