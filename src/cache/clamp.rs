@@ -582,7 +582,11 @@ mod tests {
                 let enclosed = rs.iter().any(|r| {
                     r.enclosed && !r.spot && IrradianceCache::ward_weight(r, x, n) > 1.0 / t
                 });
-                assert_eq!(cache.within_enclosed(x, n, t), enclosed, "at {x}, a {t}");
+                assert_eq!(
+                    !cache.enclosed_at(x, n, t).is_empty(),
+                    enclosed,
+                    "at {x}, a {t}"
+                );
                 let spot =
                     (0..rs.len()).any(|i| IrradianceCache::spot_weight(&rs[i], x, n) > 1.0 / t);
                 assert_eq!(cache.spot_covers(x, n, t), spot, "at {x}, a {t}");

@@ -589,12 +589,20 @@ impl IrradianceCache {
             .collect()
     }
 
-    /// True if an enclosed record ([`Record::enclosed`]) would be valid at (x, n) to a
-    /// were it not enclosed.
-    fn within_enclosed(&self, x: Vec3, n: Vec3, a: f32) -> bool {
-        self.grid.any_candidate(x, a, |i| {
-            let r = &self.records[i as usize];
-            r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
+    /// The enclosed records ([`Record::enclosed`]; not spot records) that would be valid at
+    /// (x, n) to a were they not enclosed.
+    fn enclosed_at(&self, x: Vec3, n: Vec3, a: f32) -> Vec<u32> {
+        if self.records.is_empty() {
+            return Vec::new();
+        }
+        self.grid.with_candidates(x, a, |idx| {
+            idx.iter()
+                .copied()
+                .filter(|&i| {
+                    let r = &self.records[i as usize];
+                    r.enclosed && !r.spot && Self::ward_weight(r, x, n) > 1.0 / a
+                })
+                .collect()
         })
     }
 
@@ -636,6 +644,13 @@ impl IrradianceCache {
     /// `samples`, the points off the pixel centres where this frame's camera samples will
     /// read the cache (with spot records for those no other record covers, with `spot`). The
     /// grids' points are pixel centres, whose hits `centres` holds.
+    ///
+    /// A point where an enclosed record ([`Record::enclosed`]) is valid gets no record: its
+    /// own would come out enclosed as well, never used. That record is marked used in this
+    /// frame instead, so that it stays for as long as it stands in for one. (Before, each
+    /// frame of a fixed camera placed the same enclosed records at the pixel centres again,
+    /// and each expired unused after `max_age` frames: on Sponza at 320 × 180, production, a
+    /// quarter of a steady frame's gather rays.)
     #[allow(clippy::too_many_arguments)] // placement needs the view and the method
     pub fn place(
         &mut self,
@@ -656,6 +671,8 @@ impl IrradianceCache {
         // The records of earlier frames that see no dynamic prim cover to the slack
         // threshold; the others, to a.
         let quiet = self.quiet_records(p.coverage_slack);
+        // The enclosed records that kept a point from getting a record (to be kept).
+        let mut blocking: Vec<u32> = Vec::new();
         loop {
             let level_first = spacing == coarsest;
             let candidates: Vec<(u32, u32)> = (0..height)
@@ -663,7 +680,7 @@ impl IrradianceCache {
                 .flat_map(|y| (0..width).step_by(spacing as usize).map(move |x| (x, y)))
                 .filter(|&(x, y)| level_first || x % (2 * spacing) != 0 || y % (2 * spacing) != 0)
                 .collect();
-            let needed: Vec<(u32, SurfacePoint)> = candidates
+            let uncovered: Vec<((u32, SurfacePoint), Vec<u32>)> = candidates
                 .par_iter()
                 .filter_map(|&(x, y)| {
                     let sp = centres.point(frame, x, y)?;
@@ -674,9 +691,18 @@ impl IrradianceCache {
                         p.coverage_slack,
                         &quiet,
                     );
-                    (!covered).then_some((y * width + x, sp))
+                    let enclosed = || self.enclosed_at(sp.position, sp.ns, p.error);
+                    (!covered).then(|| ((y * width + x, sp), enclosed()))
                 })
                 .collect();
+            let mut needed: Vec<(u32, SurfacePoint)> = Vec::with_capacity(uncovered.len());
+            for (point, enclosed) in uncovered {
+                if enclosed.is_empty() {
+                    needed.push(point);
+                } else {
+                    blocking.extend(enclosed);
+                }
+            }
             self.add_records(
                 frame,
                 &needed,
@@ -702,7 +728,9 @@ impl IrradianceCache {
             spot,
             resolve,
             timings,
+            &mut blocking,
         );
+        self.touch(&blocking, frame_number);
     }
 
     /// Records for the `samples` (pixel index, surface point; in pixel order) that no record
@@ -715,9 +743,10 @@ impl IrradianceCache {
     ///
     /// No record is placed for a point still uncovered after [`SAMPLE_ROUNDS`] rounds, nor
     /// for one where an enclosed record ([`Record::enclosed`], of this frame or an earlier
-    /// one) would be valid: its own record would come out enclosed as well (a contact, the
-    /// inside of intersecting meshes), unused, and be placed again each round and each
-    /// frame (on Sponza, ~300 such records a frame, a fifth of its new records). With
+    /// one) would be valid to the relaxed threshold: its own record would come out enclosed
+    /// as well (a contact, the inside of intersecting meshes), unused, and be placed again
+    /// each round and each frame (on Sponza, ~300 such records a frame, a fifth of its new
+    /// records). The enclosed records that stood in go into `blocking`. With
     /// `spot` (the anchor method), each such point that no spot record covers to the relaxed
     /// threshold gets one ([`IrradianceCache::interpolate_spot`]), in rounds the same way,
     /// the last round taking every point left; without, such points gather on the spot
@@ -734,18 +763,30 @@ impl IrradianceCache {
         spot: bool,
         resolve: &mut Resolve,
         timings: &mut GatherTimings,
+        blocking: &mut Vec<u32>,
     ) {
         let reach = p.min_spacing_px.max(1.0) as i64;
         let relaxed = RELAXED * p.error;
         let mut pending: Vec<&(u32, SurfacePoint)> = samples.iter().collect();
         for _ in 0..SAMPLE_ROUNDS {
-            pending = pending
+            let uncovered: Vec<(&(u32, SurfacePoint), Vec<u32>)> = pending
                 .into_par_iter()
-                .filter(|(_, sp)| {
-                    let (x, n) = (sp.position, sp.ns);
-                    !self.covers(x, n, relaxed) && !self.within_enclosed(x, n, relaxed)
+                .filter(|(_, sp)| !self.covers(sp.position, sp.ns, relaxed))
+                .map(|point| {
+                    (
+                        point,
+                        self.enclosed_at(point.1.position, point.1.ns, relaxed),
+                    )
                 })
                 .collect();
+            pending = Vec::with_capacity(uncovered.len());
+            for (point, enclosed) in uncovered {
+                if enclosed.is_empty() {
+                    pending.push(point);
+                } else {
+                    blocking.extend(enclosed);
+                }
+            }
             if pending.is_empty() {
                 break;
             }

@@ -134,8 +134,11 @@ pub struct Record {
     /// record's gather started inside closed geometry — a static record on a floor that a
     /// dynamic prim now stands on, or a point whose ray origin lies past a contact. Its
     /// irradiance (zero, or what the inside of a prim reflects) is not the surface's, so
-    /// interpolation and placement ignore it: it is not used, and expires after `max_age`
-    /// frames (§4.3). Back faces that reflect light are not the inside of anything: meshes
+    /// interpolation and the coverage tests ignore it: it is not used. A record placed where
+    /// it is valid would come out enclosed as well, so placement puts none there and keeps
+    /// it (marks it used) in each frame it does so; otherwise it expires after `max_age`
+    /// frames (§4.3). It is re-made from its strata as any record is, so once what enclosed
+    /// it moves away it is an open record again. Back faces that reflect light are not the inside of anything: meshes
     /// wound the other way from their neighbours (decimated or mirrored exports, Sponza's
     /// LOD among them) show them to the room, and photons land on them from that side.
     pub enclosed: bool,

@@ -368,3 +368,53 @@ fn a_moving_camera_keeps_the_records_of_earlier_frames_to_the_relaxed_threshold(
         }
     }
 }
+
+/// Records whose gathers start inside closed geometry (`Record::enclosed`: the floor under
+/// Sponza's moving box, meshes that intersect) are never read, and a record placed beside
+/// one comes out enclosed as well. Placement leaves the points where one is valid without a
+/// record, at the pixel centres as at the camera samples, and keeps such a record for as
+/// long as it stands in for one; before, every frame of a fixed camera placed the same
+/// enclosed records again at the pixel centres, and each expired unused after `max_age`
+/// frames to be placed again (at 320 × 180, a quarter of the rays of a steady frame).
+/// Sponza from a fixed camera at 80 × 45: frames 3–5 (by when frame 0's records would have
+/// expired) make fewer enclosed records together than frame 0 (measured: 21 against 35;
+/// before, 73 against 38). The new ones lie under the moving box, and at camera samples
+/// that land beside the enclosed records so far.
+#[test]
+fn a_fixed_camera_places_each_enclosed_record_once() {
+    let path = root().join("benches/sponza/job.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    j["camera"] = serde_json::json!({"position": [-11, 2.5, -0.5], "look_at": [-1, 2.5, -0.5], "yfov_deg": 55});
+    j["resolution"] = serde_json::json!([80, 45]);
+    j["method"]["name"] = "anchors".into();
+    let job = job_from_json(&path, &j.to_string()).unwrap();
+    let scene = job.load_scene().unwrap();
+    let resources = pipeline::new_resources(&job, &scene).unwrap();
+    let mut state = FrameState::default();
+    let mut seen = std::collections::HashSet::new();
+    let (mut first, mut late) = (0, 0);
+    for f in 0..6 {
+        let mut st = pipeline::new_stats(&job, f);
+        pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut st).unwrap();
+        let made = state
+            .cache
+            .records
+            .iter()
+            .filter(|r| r.enclosed && !r.spot && seen.insert(r.id))
+            .count();
+        eprintln!(
+            "frame {f}: {made} enclosed records made, {} records",
+            state.cache.records.len()
+        );
+        match f {
+            0 => first = made,
+            3.. => late += made,
+            _ => {}
+        }
+    }
+    assert!(first > 0, "the test needs enclosed records");
+    assert!(
+        late < first,
+        "frames 3-5 made {late} against frame 0's {first}"
+    );
+}
