@@ -650,7 +650,7 @@ impl IrradianceCache {
     /// frame instead, so that it stays for as long as it stands in for one. (Before, each
     /// frame of a fixed camera placed the same enclosed records at the pixel centres again,
     /// and each expired unused after `max_age` frames: on Sponza at 320 × 180, production, a
-    /// quarter of a steady frame's gather rays.)
+    /// fifth of a steady frame's gather rays.)
     #[allow(clippy::too_many_arguments)] // placement needs the view and the method
     pub fn place(
         &mut self,

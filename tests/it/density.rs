@@ -379,7 +379,7 @@ fn a_moving_camera_keeps_the_records_of_earlier_frames_to_the_relaxed_threshold(
 /// record, at the pixel centres as at the camera samples, and keeps such a record for as
 /// long as it stands in for one; before, every frame of a fixed camera placed the same
 /// enclosed records again at the pixel centres, and each expired unused after `max_age`
-/// frames to be placed again (at 320 × 180, a quarter of the rays of a steady frame).
+/// frames to be placed again (at 320 × 180, a fifth of the rays of a steady frame).
 /// Sponza from a fixed camera at 80 × 45: frames 3–5 (by when frame 0's records would have
 /// expired) make fewer enclosed records together than frame 0 (measured: 21 against 35;
 /// before, 73 against 38). The new ones lie under the moving box, and at camera samples
