@@ -132,6 +132,21 @@ pub struct IrradianceCache {
 /// hold it.
 const CELL_ENTRIES: usize = 2 * 8 * size_of::<grid::Entry>();
 
+/// The points of `uncovered` (each with the enclosed records valid there,
+/// [`IrradianceCache::enclosed_at`]) that no enclosed record stands in for; the enclosed
+/// records that do go into `blocking`, to be marked used.
+fn unblocked<T>(uncovered: Vec<(T, Vec<u32>)>, blocking: &mut Vec<u32>) -> Vec<T> {
+    let mut open = Vec::with_capacity(uncovered.len());
+    for (point, enclosed) in uncovered {
+        if enclosed.is_empty() {
+            open.push(point);
+        } else {
+            blocking.extend(enclosed);
+        }
+    }
+    open
+}
+
 /// The points of `pending` (pixel index, surface point; in order) to gather in one round of
 /// [`IrradianceCache::place_at_samples`]: each with no point taken before it within
 /// `reach` pixels.
@@ -680,7 +695,7 @@ impl IrradianceCache {
                 .flat_map(|y| (0..width).step_by(spacing as usize).map(move |x| (x, y)))
                 .filter(|&(x, y)| level_first || x % (2 * spacing) != 0 || y % (2 * spacing) != 0)
                 .collect();
-            let uncovered: Vec<((u32, SurfacePoint), Vec<u32>)> = candidates
+            let uncovered: Vec<_> = candidates
                 .par_iter()
                 .filter_map(|&(x, y)| {
                     let sp = centres.point(frame, x, y)?;
@@ -695,14 +710,7 @@ impl IrradianceCache {
                     (!covered).then(|| ((y * width + x, sp), enclosed()))
                 })
                 .collect();
-            let mut needed: Vec<(u32, SurfacePoint)> = Vec::with_capacity(uncovered.len());
-            for (point, enclosed) in uncovered {
-                if enclosed.is_empty() {
-                    needed.push(point);
-                } else {
-                    blocking.extend(enclosed);
-                }
-            }
+            let needed = unblocked(uncovered, &mut blocking);
             self.add_records(
                 frame,
                 &needed,
@@ -769,7 +777,7 @@ impl IrradianceCache {
         let relaxed = RELAXED * p.error;
         let mut pending: Vec<&(u32, SurfacePoint)> = samples.iter().collect();
         for _ in 0..SAMPLE_ROUNDS {
-            let uncovered: Vec<(&(u32, SurfacePoint), Vec<u32>)> = pending
+            let uncovered: Vec<_> = pending
                 .into_par_iter()
                 .filter(|(_, sp)| !self.covers(sp.position, sp.ns, relaxed))
                 .map(|point| {
@@ -779,14 +787,7 @@ impl IrradianceCache {
                     )
                 })
                 .collect();
-            pending = Vec::with_capacity(uncovered.len());
-            for (point, enclosed) in uncovered {
-                if enclosed.is_empty() {
-                    pending.push(point);
-                } else {
-                    blocking.extend(enclosed);
-                }
-            }
+            pending = unblocked(uncovered, blocking);
             if pending.is_empty() {
                 break;
             }

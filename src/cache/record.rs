@@ -138,9 +138,10 @@ pub struct Record {
     /// it is valid would come out enclosed as well, so placement puts none there and keeps
     /// it (marks it used) in each frame it does so; otherwise it expires after `max_age`
     /// frames (§4.3). It is re-made from its strata as any record is, so once what enclosed
-    /// it moves away it is an open record again. Back faces that reflect light are not the inside of anything: meshes
-    /// wound the other way from their neighbours (decimated or mirrored exports, Sponza's
-    /// LOD among them) show them to the room, and photons land on them from that side.
+    /// it moves away it is an open record again. Back faces that reflect light are not the
+    /// inside of anything: meshes wound the other way from their neighbours (decimated or
+    /// mirrored exports, Sponza's LOD among them) show them to the room, and photons land on
+    /// them from that side.
     pub enclosed: bool,
     /// A spot record ([`IrradianceCache::interpolate_spot`]): made for a camera sample that
     /// no other record covers, valid out to its own Ward radius (not widened to the minimum
