@@ -78,6 +78,9 @@ def main():
     ap.add_argument("--photons", default="",
                     help="photon counts for the anchors rows (method.photons; "
                          "empty: each preset's own)")
+    ap.add_argument("--gather-direct", default="",
+                    help="method.gather_direct values for the anchors rows (photons, "
+                         "shadow-rays); empty: the job's own")
     ap.add_argument("--steady", type=int, default=3, help="frames anchors renders first")
     ap.add_argument("--converged", type=int, default=2048)
     ap.add_argument("--out", default=os.path.join(ROOT, "benches/render_cycles"))
@@ -157,13 +160,18 @@ def main():
             score("anchorage path-trace", f"{s} paths/px", t, anchorage_images(path), ref_a)
         first = max(job["frames"]["start"], args.frame - args.steady)
         photons = [int(n) for n in args.photons.split(",") if n] or [None]
+        directs = [d for d in args.gather_direct.split(",") if d] or [None]
         for preset in args.presets.split(","):
             for spp in map(int, args.anchors_spp.split(",")):
                 for n in photons:
-                    method = {"preset": preset} | ({"photons": n} if n else {})
-                    setting = f"{preset}, {spp} spp" + (f", {n} photons" if n else "")
-                    t, path = anchorage(f"a_{preset}_{spp}_{n}", "anchors", first, method, spp)
-                    score("anchorage anchors", setting, t, anchorage_images(path), ref_a)
+                    for d in directs:
+                        method = ({"preset": preset} | ({"photons": n} if n else {})
+                                  | ({"gather_direct": d} if d else {}))
+                        setting = (f"{preset}, {spp} spp" + (f", {n} photons" if n else "")
+                                   + (f", {d}" if d else ""))
+                        t, path = anchorage(f"a_{preset}_{spp}_{n}_{d}", "anchors", first,
+                                            method, spp)
+                        score("anchorage anchors", setting, t, anchorage_images(path), ref_a)
 
     cycles_ref = (f"Cycles {args.converged} spp ({t_ref_c:.1f} s), " if t_ref_c is not None
                   else "")

@@ -46,6 +46,8 @@ declare -A TESTS=(
   [integration-untimed]="gi::uncached_samples_count"
   [shares-forget-made]="anchors::a_batch"
   [enclosed-placed-again]="density::a_fixed_camera"
+  [anchor-direct-dropped]="photons::shadow_rays_at_gather"
+  [first-hits-counted-twice]="photons::shadow_rays_at_gather"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -54,7 +56,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
   references-one-share relink-first-found retry-takes-fewer integration-untimed
-  shares-forget-made enclosed-placed-again)
+  shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

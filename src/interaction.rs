@@ -608,7 +608,20 @@ fn punctual_incident(
     l: &PunctualLight,
     shadow: &mut ShadowRays,
 ) -> Option<(Vec3, Vec3)> {
-    let o = x.spawn();
+    punctual_incident_from(frame, x.spawn(), x.ns, x.ng, l, shadow)
+}
+
+/// The light of one punctual light, shadow ray included, at a point known by its shadow
+/// rays' origin `o` (already off its surface) and its shading and geometric normals: the
+/// direction towards the light and the irradiance it gives a surface facing it.
+pub fn punctual_incident_from(
+    frame: &FrameScene,
+    o: Vec3,
+    ns: Vec3,
+    ng: Vec3,
+    l: &PunctualLight,
+    shadow: &mut ShadowRays,
+) -> Option<(Vec3, Vec3)> {
     let (wi, dist, e) = match l.kind {
         LightKind::Directional => (-l.direction, f32::INFINITY, l.intensity),
         LightKind::Point | LightKind::Spot { .. } => {
@@ -630,7 +643,7 @@ fn punctual_incident(
             (wi, r * (1.0 - 1e-6), e)
         }
     };
-    if x.ns.dot(wi) <= 0.0 || x.ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
+    if ns.dot(wi) <= 0.0 || ng.dot(wi) <= 0.0 || e == Vec3::ZERO {
         return None;
     }
     if shadow.occluded(frame, o, wi, dist) {

@@ -17,6 +17,7 @@ use crate::anchor::AnchorParams;
 use crate::error::{Error, Result};
 use crate::geom::Motion;
 use crate::integrator::{GiParams, Preset};
+use crate::photon::GatherDirect;
 use crate::scene::{CameraSpec, Clip, LayerDesc, LookAt, Scene, SceneDesc};
 pub use crate::visibility::VisibilityChoice;
 
@@ -277,6 +278,11 @@ pub struct MethodSettings {
     /// through closed geometry; in (0, 1]. Default 0.05.
     #[schemars(extend("exclusiveMinimum" = 0, "maximum" = 1))]
     pub max_photon_radius: Option<f32>,
+    /// Where a gather hit's direct light from punctual lights comes from: `photons` (the
+    /// paper's: the photon map's estimate) or `shadow-rays` (a shadow ray to each punctual
+    /// light from each gather hit and anchor; the photon map for the light that has
+    /// bounced). Default `photons`.
+    pub gather_direct: Option<GatherDirect>,
     /// `[M, N]`: θ × φ strata of the final gather, M·N rays per cache record. Default: the
     /// preset's (8×24, 12×36, 30×60).
     #[schemars(inner(range(min = 1, max = 256)))]
@@ -371,6 +377,9 @@ impl MethodSettings {
         }
         if let Some(v) = self.max_photon_radius {
             p.max_photon_radius = v;
+        }
+        if let Some(v) = self.gather_direct {
+            p.gather_direct = v;
         }
         if let Some(v) = self.strata {
             p.cache.strata = v;

@@ -310,6 +310,7 @@ impl Attacher<'_> {
     /// ([`PhotonMap::irradiance_and_radius_near`]; unbounded where none was near).
     pub fn estimate_created(&self, set: &mut AnchorSet, created: &[AnchorId]) {
         let q = set.quantizer;
+        let lift = set.lift(self.frame.static_radius());
         let k = self.params.anchor_k(self.k);
         let estimates: Vec<(Vec3, f32)> = {
             let set = &*set;
@@ -318,10 +319,11 @@ impl Attacher<'_> {
                 .map(|&id| set.anchor(id).position(&q))
                 .collect();
             crate::photon::knn::map_in_query_order(&positions, |i| {
-                let a = set.anchor(created[i]);
+                let (a, x) = (set.anchor(created[i]), positions[i]);
                 let reach = set.reach2(created[i]);
-                self.pm
-                    .irradiance_and_radius_near(positions[i], a.normal(), k, reach)
+                let n = a.normal();
+                let (e, r2) = self.pm.irradiance_and_radius_near(x, n, k, reach);
+                (e + self.pm.direct_from(self.frame, x + lift * n, n), r2)
             })
         };
         for (&id, (e, r2)) in created.iter().zip(estimates) {

@@ -200,6 +200,14 @@ impl AnchorSet {
         };
     }
 
+    /// How far above an anchor's decoded position the rays that leave it start (its
+    /// surface found again, its shadow rays), in a scene of bounding radius `scene_radius`:
+    /// far enough to clear the quantisation and the hit's rounding, near enough that no
+    /// other surface fits in between.
+    pub fn lift(&self, scene_radius: f32) -> f32 {
+        16.0 * self.quantizer.max_error() + 1e-6 * scene_radius
+    }
+
     /// The squared reach of anchor `id`'s estimate (at least the true one).
     pub fn reach2(&self, id: AnchorId) -> f32 {
         let r = half::f16::from_bits(self.reach[id.index()]).to_f32() * self.reach_unit();

@@ -127,7 +127,7 @@ fn resolve(
         let sp = at_dynamic[i];
         sp.albedo(att.m)
             * std::f32::consts::FRAC_1_PI
-            * att.pm.irradiance(sp.position, sp.ng, att.k)
+            * (att.pm.irradiance(sp.position, sp.ng, att.k) + att.pm.direct_at_hit(att.frame, sp))
     });
     // The static hits that attach, in record and stratum order.
     let attaching: Vec<&crate::interaction::SurfacePoint> = hits
@@ -210,7 +210,7 @@ pub fn update(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed, nearest) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) = reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true); // every anchor may reflect another colour
@@ -294,7 +294,7 @@ pub fn relight(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed, nearest) = reestimate_anchors(set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) = reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true);
@@ -332,10 +332,7 @@ pub fn relight(
 /// no prim index, §3's 18 bytes). An anchor whose surface the ray does not find again
 /// (its quantised position fell past a triangle's edge) keeps its albedo.
 pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet, at: &AnchorPlaces) {
-    let q = set.quantizer;
-    // Far enough above the surface to clear the quantisation and the hit's rounding, near
-    // enough that no other surface fits in between.
-    let lift = 16.0 * q.max_error() + 1e-6 * ctx.scene.static_radius();
+    let lift = set.lift(ctx.scene.static_radius());
     // Traced along a Morton curve: neighbouring rays visit the same BVH nodes.
     let positions = &at.positions;
     let fresh: Vec<Option<Vec3>> = crate::photon::knn::map_in_order(&at.order, |i| {
@@ -362,8 +359,11 @@ pub fn refresh_albedo(ctx: &FrameContext, set: &mut AnchorSet, at: &AnchorPlaces
 /// again (the lazy recomputation the paper's §6 points to). Returns how many were estimated;
 /// per anchor, whether its L_i may differ from the last frame's (estimated again, or a free
 /// slot that a new anchor may fill); and per anchor, what the search found of its nearest
-/// photon.
+/// photon. With [`crate::photon::GatherDirect::ShadowRays`] an anchor estimated again adds
+/// its punctual lights' direct light by shadow rays; one whose photons did not change keeps
+/// that too (a moving occluder's shadow changes the first hits of the photons there).
 fn reestimate_anchors(
+    frame: &FrameScene,
     set: &mut AnchorSet,
     pm: &PhotonMap,
     anchor_k: usize,
@@ -385,6 +385,7 @@ fn reestimate_anchors(
         (!changed.is_empty() && !all).then(|| crate::photon::knn::PointTree::new(&changed));
     let set_ref = &*set;
     let positions = &at.positions;
+    let lift = set.lift(frame.static_radius());
     let fresh: Vec<Option<(Vec3, f32, Option<usize>)>> =
         crate::photon::knn::map_in_order(&at.order, |i| {
             let a = &set_ref.anchors[i];
@@ -397,8 +398,11 @@ fn reestimate_anchors(
                 && !all
                 && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
             let r2_near = if near { r2 } else { f32::INFINITY };
-            (!untouched)
-                .then(|| pm.irradiance_radius_and_nearest_near(x, a.normal(), anchor_k, r2_near))
+            (!untouched).then(|| {
+                let n = a.normal();
+                let (e, r2, ph) = pm.irradiance_radius_and_nearest_near(x, n, anchor_k, r2_near);
+                (e + pm.direct_from(frame, x + lift * n, n), r2, ph)
+            })
         });
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
     let mut nearest = vec![NearestPhoton::Unknown; set.anchors.len()];

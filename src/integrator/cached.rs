@@ -36,6 +36,7 @@ use crate::geom::Motion;
 use crate::interaction::{Materials, PixelCentres, SurfacePoint, camera_hit};
 use crate::photon::PhotonMap;
 use crate::photon::precomputed::PrecomputedIrradiance;
+use crate::scene::FrameScene;
 use crate::visibility::Visibility;
 use crate::visibility::depth::{CpuDepthMaps, DepthMaps, DepthQuery};
 use serde::{Deserialize, Serialize};
@@ -52,7 +53,8 @@ pub enum CachedMethod {
 #[derive(Clone, Copy)]
 pub enum GatherEstimate<'a> {
     PhotonMap(&'a PhotonMap, usize),
-    Precomputed(&'a PrecomputedIrradiance),
+    /// Christensen's irradiance at the photons, and the map it was computed from.
+    Precomputed(&'a PrecomputedIrradiance, &'a PhotonMap),
     /// `anchors`, for the gathers of pixel samples no record covers: a static hit reflects
     /// the light of the anchor Pseudocode 1 would link it to (§3.1's reuse tests, the same
     /// search as a record's hit; no anchor is made or linked), as a record's stratum would;
@@ -62,11 +64,17 @@ pub enum GatherEstimate<'a> {
 
 impl GatherEstimate<'_> {
     /// Reflected radiance leaving a gather hit: albedo × E / π (emission excluded: direct
-    /// light is computed separately at the camera hit).
-    pub fn radiance(&self, sp: &SurfacePoint, m: Materials) -> Vec3 {
+    /// light is computed separately at the camera hit). E adds the punctual lights' direct
+    /// light by shadow rays where the photon map leaves it out
+    /// ([`crate::photon::GatherDirect::ShadowRays`]).
+    pub fn radiance(&self, frame: &FrameScene, sp: &SurfacePoint, m: Materials) -> Vec3 {
         let e = match *self {
-            GatherEstimate::PhotonMap(pm, k) => pm.irradiance(sp.position, sp.ng, k),
-            GatherEstimate::Precomputed(pc) => pc.lookup(sp.position, sp.ng),
+            GatherEstimate::PhotonMap(pm, k) => {
+                pm.irradiance(sp.position, sp.ng, k) + pm.direct_at_hit(frame, sp)
+            }
+            GatherEstimate::Precomputed(pc, pm) => {
+                pc.lookup(sp.position, sp.ng) + pm.direct_at_hit(frame, sp)
+            }
             GatherEstimate::Anchors(att, set) => {
                 let anchor = (sp.hit.motion == Motion::Static)
                     .then(|| att.find(set, sp))
@@ -74,7 +82,7 @@ impl GatherEstimate<'_> {
                 if let Some(id) = anchor {
                     return set.anchor(id).radiance();
                 }
-                att.pm.irradiance(sp.position, sp.ng, att.k)
+                att.pm.irradiance(sp.position, sp.ng, att.k) + att.pm.direct_at_hit(frame, sp)
             }
         };
         sp.albedo(m) * FRAC_1_PI * e
@@ -202,6 +210,7 @@ pub fn render_in_bands(
         ctx.seed,
         params.photon_bounces,
         params.max_photon_radius,
+        params.gather_direct,
         state.anchors.as_ref().map(|a| &a.previous_photons),
     );
     st.photon_tracing = t.elapsed().as_secs_f64();
@@ -211,7 +220,7 @@ pub fn render_in_bands(
         .then(|| PrecomputedIrradiance::new(&pm, params.k as usize));
     st.irradiance_estimation = t.elapsed().as_secs_f64();
     let estimate = match &pc {
-        Some(pc) => GatherEstimate::Precomputed(pc),
+        Some(pc) => GatherEstimate::Precomputed(pc, &pm),
         None => GatherEstimate::PhotonMap(&pm, params.k as usize),
     };
     let mut gt = GatherTimings::default();
@@ -442,7 +451,7 @@ fn prepare_brute_force(
     gt: &mut GatherTimings,
 ) {
     let m = ctx.materials;
-    let radiance = |sp: &SurfacePoint| estimate.radiance(sp, m);
+    let radiance = |sp: &SurfacePoint| estimate.radiance(ctx.scene, sp, m);
     let mut brute =
         |fp: &[f32], hits: Vec<Vec<GatherHit>>| gather::estimate_all(fp, hits, &radiance);
     // Brute force re-gathers every stratum every frame: no hit is worth keeping.
@@ -955,8 +964,9 @@ impl CachedShading<'_> {
                 let radiance: Vec<Vec3> = hits
                     .iter()
                     .map(|h| {
-                        h.sp.as_ref()
-                            .map_or(Vec3::ZERO, |sp| self.uncached.radiance(sp, ctx.materials))
+                        h.sp.as_ref().map_or(Vec3::ZERO, |sp| {
+                            self.uncached.radiance(ctx.scene, sp, ctx.materials)
+                        })
                     })
                     .collect();
                 let e = radiance.iter().sum::<Vec3>() * (PI / strata);
@@ -1219,7 +1229,7 @@ impl CachedShading<'_> {
             }
         };
         let mut st = super::bucket::BucketStats::default();
-        let fallback = |y: &SurfacePoint| self.estimate.radiance(y, ctx.materials);
+        let fallback = |y: &SurfacePoint| self.estimate.radiance(ctx.scene, y, ctx.materials);
         let v = super::bucket::finish(
             ctx.scene,
             self.cache,
@@ -1267,7 +1277,7 @@ impl CachedShading<'_> {
             };
             // The photon estimate at the hit, as at a final-gather hit: it holds the direct
             // light there too.
-            let l = self.estimate.radiance(&y, ctx.materials);
+            let l = self.estimate.radiance(ctx.scene, &y, ctx.materials);
             sum += f * l * (ns.dot(wi) / pdf);
         }
         sum / n as f32

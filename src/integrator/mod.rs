@@ -36,6 +36,7 @@ use crate::cache::CacheParams;
 use crate::interaction::{
     LightSampling, Materials, ShadowRays, SurfacePoint, brdf_sampled_emission, direct_light,
 };
+use crate::photon::GatherDirect;
 use crate::sampling::{Dims, Sampler, Stream};
 use crate::scene::{CameraRay, FrameScene};
 pub use film::{Accumulator, FrameImage, Pixel, PixelVariance, RenderCounts};
@@ -53,6 +54,9 @@ pub struct GiParams {
     /// No photon look-up reaches farther than this fraction of the static scene's bounding
     /// radius ([`crate::photon::PhotonMap::max_radius`]). Default 0.05 in every preset.
     pub max_photon_radius: f32,
+    /// Where gather hits' direct light from punctual lights comes from. Default
+    /// [`GatherDirect::Photons`] in every preset.
+    pub gather_direct: GatherDirect,
     pub cache: CacheParams,
     /// `anchors`: anchor density and reuse heuristics.
     pub anchors: AnchorParams,
@@ -108,6 +112,7 @@ impl GiParams {
                 k: 32,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
+                gather_direct: GatherDirect::Photons,
                 cache: CacheParams {
                     strata: [8, 24],
                     error: 0.4,
@@ -126,6 +131,7 @@ impl GiParams {
                 k: 64,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
+                gather_direct: GatherDirect::Photons,
                 cache,
                 anchors: AnchorParams::default(),
                 path_samples: 256,
@@ -138,6 +144,7 @@ impl GiParams {
                 k: 100,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
+                gather_direct: GatherDirect::Photons,
                 cache: CacheParams {
                     strata: [30, 60],
                     error: 0.15,

@@ -29,14 +29,33 @@ use std::f32::consts::PI;
 use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::accel::{interpolate, offset_ray_origin};
 use crate::color::luminance;
 use crate::geom::{basis, cosine_direction, face_normal_area, uniform_sphere};
-use crate::interaction::{Materials, SurfacePoint};
+use crate::interaction::{Materials, ShadowRays, SurfacePoint, punctual_incident_from};
 use crate::sampling::Sampler;
 use crate::scene::{FrameScene, LightKind};
+
+/// Where a gather hit's direct light from punctual lights comes from (`method.gather_direct`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum GatherDirect {
+    /// The paper's (§1, §3.3.2): the photon map's estimate, first hits included. Its disc
+    /// estimates read low where light changes over the disc — at the edges of surfaces, in
+    /// corners, across shadow edges — and a gather reads that bias at every hit.
+    #[default]
+    Photons,
+    /// A shadow ray to each punctual light from each gather hit and each anchor, as at a
+    /// camera hit ([`PhotonMap::direct_at_hit`], [`PhotonMap::direct_from`]); the photon
+    /// estimates count only light that has bounced at least once (and the first hits of
+    /// emissive triangles' photons, which no shadow ray stands in for). The photons' first
+    /// hits stay in the map with no power: the k-nearest radius, the anchors' nearest
+    /// photons and the frame-to-frame comparison of paths (§4.2) see every photon as before.
+    ShadowRays,
+}
 
 /// One stored photon.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -117,6 +136,8 @@ pub struct PhotonMap {
     pub emitted_power: Vec3,
     /// No look-up reaches farther than this (scene units; see the module doc).
     pub max_radius: f32,
+    /// Whether the estimates hold the first hits of punctual lights' photons.
+    pub direct: GatherDirect,
 }
 
 /// Half the thickness of the disc an estimate gathers over, as a fraction of its radius: a
@@ -417,7 +438,10 @@ impl PhotonMap {
     /// `max_radius` × the static geometry's bounding radius at most
     /// ([`FrameScene::static_radius`]: the same in every frame). `previous` are the last
     /// map's photons, if any: where every photon lies where its predecessor did, the map
-    /// uses their kd-tree ([`PhotonPaths::tree`]) instead of building one.
+    /// uses their kd-tree ([`PhotonPaths::tree`]) instead of building one. With
+    /// [`GatherDirect::ShadowRays`] the first hit of each punctual light's photon counts for
+    /// nothing in the estimates.
+    #[allow(clippy::too_many_arguments)] // the map's settings, spelled out
     pub fn trace(
         frame: &FrameScene,
         m: Materials,
@@ -425,6 +449,7 @@ impl PhotonMap {
         seed: u32,
         max_bounces: u32,
         max_radius: f32,
+        direct: GatherDirect,
         previous: Option<&PhotonPaths>,
     ) -> PhotonMap {
         let (centre, radius) = sun_sphere(frame);
@@ -459,6 +484,7 @@ impl PhotonMap {
             emitted: count,
             emitted_power,
             max_radius: max_radius * frame.static_radius(),
+            direct,
         };
         if total <= 0.0 || count == 0 {
             return map;
@@ -471,11 +497,13 @@ impl PhotonMap {
         }
         let sampler = Sampler::photons(seed);
         use rayon::prelude::*;
-        let chunks: Vec<(Vec<Photon>, Vec<u32>)> = (0..count.div_ceil(4096))
+        let chunks: Vec<(Vec<Photon>, Vec<u32>, Vec<u32>)> = (0..count.div_ceil(4096))
             .into_par_iter()
             .map(|c| {
                 let mut out = Vec::new();
                 let mut ends = Vec::new();
+                // The first hits of punctual lights' photons, which shadow rays stand in for.
+                let mut firsts = Vec::new();
                 for i in c * 4096..((c + 1) * 4096).min(count) {
                     if i > c * 4096 {
                         ends.push(out.len() as u32);
@@ -489,16 +517,22 @@ impl PhotonMap {
                         continue;
                     };
                     let flux = flux / (p_pick * count as f32);
+                    let first = out.len();
                     trace_path(frame, m, o, dir, flux, &s, max_bounces, &mut out);
+                    if matches!(sources[k], Source::Punctual(_)) && out.len() > first {
+                        firsts.push(first as u32);
+                    }
                 }
                 ends.push(out.len() as u32);
-                (out, ends)
+                (out, ends, firsts)
             })
             .collect();
         map.path_start.push(0);
-        for (photons, ends) in chunks {
+        let mut firsts = Vec::new();
+        for (photons, ends, first) in chunks {
             let base = map.photons.len() as u32;
             map.path_start.extend(ends.iter().map(|e| base + e));
+            firsts.extend(first.iter().map(|f| base + f));
             map.photons.extend(photons);
         }
         let same_places = |p: &PhotonPaths| {
@@ -515,8 +549,55 @@ impl PhotonMap {
                 Arc::new(knn::PointTree::new(&pts))
             }
         };
-        map.ordered = map.tree.in_tree_order(&map.photons);
+        map.ordered = match direct {
+            GatherDirect::Photons => map.tree.in_tree_order(&map.photons),
+            GatherDirect::ShadowRays => {
+                let mut estimated = map.photons.clone();
+                for &i in &firsts {
+                    estimated[i as usize].power = Vec3::ZERO;
+                }
+                map.tree.in_tree_order(&estimated)
+            }
+        };
         map
+    }
+
+    /// The irradiance the punctual lights give gather hit `sp` by shadow rays, counted by
+    /// its shading normal as a photon arriving from each would be (cos θ_s / cos θ_g, as
+    /// the photons are stored), where the estimates leave their first hits out
+    /// ([`GatherDirect::ShadowRays`]); zero where the estimates hold them.
+    pub fn direct_at_hit(&self, frame: &FrameScene, sp: &SurfacePoint) -> Vec3 {
+        if self.direct == GatherDirect::Photons {
+            return Vec3::ZERO;
+        }
+        let mut cast = 0;
+        let mut shadow = ShadowRays::traced(&mut cast);
+        let o = sp.spawn();
+        let mut e = Vec3::ZERO;
+        for l in &frame.lights {
+            if let Some((wi, el)) = punctual_incident_from(frame, o, sp.ns, sp.ng, l, &mut shadow) {
+                e += el * (sp.ng.dot(wi) * shading_normal_factor(sp.ng, sp.ns, wi));
+            }
+        }
+        e
+    }
+
+    /// [`Self::direct_at_hit`] at a point known only by its normal `n` and the origin `o` of
+    /// its shadow rays, already off its surface (an anchor's decoded position lifted along
+    /// its normal, `crate::integrator::anchors`).
+    pub fn direct_from(&self, frame: &FrameScene, o: Vec3, n: Vec3) -> Vec3 {
+        if self.direct == GatherDirect::Photons {
+            return Vec3::ZERO;
+        }
+        let mut cast = 0;
+        let mut shadow = ShadowRays::traced(&mut cast);
+        let mut e = Vec3::ZERO;
+        for l in &frame.lights {
+            if let Some((wi, el)) = punctual_incident_from(frame, o, n, n, l, &mut shadow) {
+                e += el * n.dot(wi);
+            }
+        }
+        e
     }
 
     /// Irradiance at `x` (normal `n`) from the `k` nearest photons whose surface normal
@@ -947,7 +1028,16 @@ mod tests {
             materials: &surfaces.materials,
             textures: &surfaces.textures,
         };
-        PhotonMap::trace(&frame, m, photons, 3, 8, 0.05, previous)
+        PhotonMap::trace(
+            &frame,
+            m,
+            photons,
+            3,
+            8,
+            0.05,
+            GatherDirect::Photons,
+            previous,
+        )
     }
 
     /// A map whose photons lie where the last map's did (the sun brighter) uses that map's

@@ -39,7 +39,8 @@ const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed
      its irradiance) and light its glossy lobe from a fit of the cache's incident light; \
      their photon estimates' bias weighs more on such metals (Sponza in white metal of \
      roughness 1 reads about 25 % low in indirect light against the path tracer, in a white \
-     diffuse material 11 %; with 16 times the photons, 12 %)";
+     diffuse material 11 %; with 16 times the photons, 12 %; with method.gather_direct \
+     \"shadow-rays\", 9 %)";
 
 /// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out
 /// (deterministic, noise-free), with a warning per material.

@@ -66,6 +66,7 @@ fn frame_photons(
         job.seed,
         params.photon_bounces,
         params.max_photon_radius,
+        params.gather_direct,
         None,
     );
     (fs, pm)
@@ -209,8 +210,8 @@ fn a_gather_no_record_covers_reads_the_anchors_its_hits_would_link_to() {
                     statics += 1;
                     found += usize::from(att.find(set, h).is_some());
                 }
-                ea += anchored.radiance(h, m).element_sum() as f64;
-                ep += photons.radiance(h, m).element_sum() as f64;
+                ea += anchored.radiance(&fs, h, m).element_sum() as f64;
+                ep += photons.radiance(&fs, h, m).element_sum() as f64;
             }
             if ep > 0.0 {
                 sq += ((ea - ep) / ep).powi(2);

@@ -4,7 +4,7 @@
 use super::common::*;
 use super::scenes::base64_encode;
 use anchorage::interaction::Materials;
-use anchorage::photon::PhotonMap;
+use anchorage::photon::{GatherDirect, PhotonMap};
 
 /// A closed cube room, side 2·`half`, every wall emitting radiance `le` inward, albedo `rho`.
 /// In such an enclosure the radiance is L = Le / (1 − ρ) everywhere, so at a wall
@@ -198,7 +198,16 @@ fn photon_power_is_conserved() {
             materials: &scene.materials,
             textures: &scene.textures,
         };
-        let pm = PhotonMap::trace(&frame, m, 200_000, 7, bounces, 1.0, None);
+        let pm = PhotonMap::trace(
+            &frame,
+            m,
+            200_000,
+            7,
+            bounces,
+            1.0,
+            GatherDirect::Photons,
+            None,
+        );
         let emitted = pm.emitted_power.y as f64;
         // Emitted flux of six inward faces of area 4·half² with radiance 1: π·Le·A.
         let area = 24.0 * (half as f64).powi(2);

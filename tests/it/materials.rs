@@ -6,7 +6,7 @@ use std::f32::consts::PI;
 use std::path::Path;
 
 use anchorage::interaction::{Materials, trace};
-use anchorage::photon::PhotonMap;
+use anchorage::photon::{GatherDirect, PhotonMap};
 use anchorage::scene::{FrameScene, Scene};
 use glam::{Vec2, Vec3};
 
@@ -368,7 +368,16 @@ fn photons_pass_through_the_cut_out() {
     let job = job(dir.path(), "masked.gltf", g.finish(&body), "direct", 8);
     let scene = job.load_scene().unwrap();
     let (frame, origin) = frame_of(&scene);
-    let map = PhotonMap::trace(&frame, materials(&scene), 200_000, 7, 0, 0.05, None);
+    let map = PhotonMap::trace(
+        &frame,
+        materials(&scene),
+        200_000,
+        7,
+        0,
+        0.05,
+        GatherDirect::Photons,
+        None,
+    );
     let first: Vec<Vec3> = map.path_start[..map.path_start.len() - 1]
         .iter()
         .zip(&map.path_start[1..])
@@ -709,7 +718,16 @@ fn photon_power_follows_the_emissive_texture() {
     let job = job(dir.path(), "lamp.gltf", g.finish(&body), "direct", 8);
     let scene = job.load_scene().unwrap();
     let (frame, origin) = frame_of(&scene);
-    let map = PhotonMap::trace(&frame, materials(&scene), 100_000, 3, 0, 0.05, None);
+    let map = PhotonMap::trace(
+        &frame,
+        materials(&scene),
+        100_000,
+        3,
+        0,
+        0.05,
+        GatherDirect::Photons,
+        None,
+    );
     let total = luminance(map.emitted_power);
     assert!(
         close(total, 8.0 * PI, 0.03),
