@@ -258,3 +258,75 @@ fn farm_templates_run_on_open_job_description() {
         }
     }
 }
+
+/// With `method.gather_direct` `"shadow-rays"` (a point lamp added to the room, so that there
+/// is a punctual light for the shadow rays), the anchors' L_i hold the lamp's direct light
+/// from their own shadow rays: frames resumed from a checkpoint are byte for byte the full
+/// run's, and so are the frames of one and of two threads.
+#[test]
+fn shadow_rays_at_gather_hits_resume_and_thread_alike() {
+    let d = tempdir();
+    std::fs::write(
+        d.path().join("lamp.gltf"),
+        r#"{"asset":{"version":"2.0"},"extensionsUsed":["KHR_lights_punctual"],
+        "extensions":{"KHR_lights_punctual":{"lights":[{"type":"point","intensity":8,"color":[1,0.9,0.8]}]}},
+        "nodes":[{"name":"lamp","translation":[0.8,2.2,0.5],"extensions":{"KHR_lights_punctual":{"light":0}}}],
+        "scenes":[{"nodes":[0]}],"scene":0}"#,
+    )
+    .unwrap();
+    let job_with = |direct: &str| {
+        let job = room_job(d.path(), "");
+        let text = std::fs::read_to_string(&job).unwrap().replace(
+            r#""scene":[{"path":"room.gltf"}]"#,
+            r#""scene":[{"path":"room.gltf"},{"path":"lamp.gltf"}]"#,
+        );
+        let text = text.replace(
+            r#""preset":"draft"}"#,
+            &format!(r#""preset":"draft","gather_direct":"{direct}"}}"#),
+        );
+        let path = d.path().join(format!("{direct}.json"));
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    let (job, by_photons) = (job_with("shadow-rays"), job_with("photons"));
+    let (full, states, resumed, photons) = (
+        d.path().join("full"),
+        d.path().join("states"),
+        d.path().join("resumed"),
+        d.path().join("photons"),
+    );
+    let o = render(
+        &job,
+        "0-3",
+        &full,
+        &[
+            "--state-out",
+            states.to_str().unwrap(),
+            "--state-every",
+            "2",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = render(
+        &job,
+        "2-3",
+        &resumed,
+        &["--resume", states.join("room.0001.state").to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in 2..=3 {
+        assert!(
+            exr(&full, f) == exr(&resumed, f),
+            "resumed frame {f} differs from the full run's"
+        );
+    }
+    // The setting takes effect: by photons the frames differ.
+    let o = render(&by_photons, "0-3", &photons, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(exr(&full, 3) != exr(&photons, 3));
+    super::common::assert_same_bytes_with_1_and_2_threads(
+        &job,
+        &["--frames", "0-2"],
+        &["room.0002.exr".to_string()],
+    );
+}
