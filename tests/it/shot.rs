@@ -55,6 +55,34 @@ fn files_in(dir: &Path) -> Vec<String> {
     v
 }
 
+/// Renders frames 0–`last` of `job` into `full`, keeping the state after every second frame
+/// in `states`, then frames 2–`last` into `resumed` from the state after frame 1, and asserts
+/// that each resumed frame is the full run's, byte for byte.
+fn resume_reproduces(job: &Path, last: i32, full: &Path, states: &Path, resumed: &Path) {
+    let state_args = [
+        "--state-out",
+        states.to_str().unwrap(),
+        "--state-every",
+        "2",
+    ];
+    let o = render(job, &format!("0-{last}"), full, &state_args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let from = states.join("room.0001.state");
+    let o = render(
+        job,
+        &format!("2-{last}"),
+        resumed,
+        &["--resume", from.to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in 2..=last {
+        assert!(
+            exr(full, f) == exr(resumed, f),
+            "resumed frame {f} differs from the full run's"
+        );
+    }
+}
+
 /// Frames 3–5 resumed from the state after frame 2 are byte for byte frames 3–5 of a run
 /// through 0–5 (the cache, the anchors and their photon links all come back), and a chunk
 /// whose warm-up reaches back to the animation's start is too.
@@ -68,36 +96,12 @@ fn resume_and_a_full_warm_up_reproduce_a_full_run() {
         d.path().join("resumed"),
         d.path().join("warm"),
     );
-    let o = render(
-        &job,
-        "0-5",
-        &full,
-        &[
-            "--state-out",
-            states.to_str().unwrap(),
-            "--state-every",
-            "2",
-        ],
-    );
-    assert!(o.status.success(), "{}", stderr(&o));
+    resume_reproduces(&job, 5, &full, &states, &resumed);
     // After every second frame of the range, and after its last.
     assert_eq!(
         files_in(&states),
         ["room.0001.state", "room.0003.state", "room.0005.state"]
     );
-    let o = render(
-        &job,
-        "2-5",
-        &resumed,
-        &["--resume", states.join("room.0001.state").to_str().unwrap()],
-    );
-    assert!(o.status.success(), "{}", stderr(&o));
-    for f in 2..=5 {
-        assert!(
-            exr(&full, f) == exr(&resumed, f),
-            "resumed frame {f} differs from the full run's"
-        );
-    }
     // 100 frames of warm-up stop at the animation's first frame, 0: the same run again.
     let o = render(&job, "4-5", &warm, &["--warmup", "100"]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -289,37 +293,9 @@ fn shadow_rays_at_gather_hits_resume_and_thread_alike() {
         path
     };
     let (job, by_photons) = (job_with("shadow-rays"), job_with("photons"));
-    let (full, states, resumed, photons) = (
-        d.path().join("full"),
-        d.path().join("states"),
-        d.path().join("resumed"),
-        d.path().join("photons"),
-    );
-    let o = render(
-        &job,
-        "0-3",
-        &full,
-        &[
-            "--state-out",
-            states.to_str().unwrap(),
-            "--state-every",
-            "2",
-        ],
-    );
-    assert!(o.status.success(), "{}", stderr(&o));
-    let o = render(
-        &job,
-        "2-3",
-        &resumed,
-        &["--resume", states.join("room.0001.state").to_str().unwrap()],
-    );
-    assert!(o.status.success(), "{}", stderr(&o));
-    for f in 2..=3 {
-        assert!(
-            exr(&full, f) == exr(&resumed, f),
-            "resumed frame {f} differs from the full run's"
-        );
-    }
+    let [full, states, resumed, photons] =
+        ["full", "states", "resumed", "photons"].map(|n| d.path().join(n));
+    resume_reproduces(&job, 3, &full, &states, &resumed);
     // The setting takes effect: by photons the frames differ.
     let o = render(&by_photons, "0-3", &photons, &[]);
     assert!(o.status.success(), "{}", stderr(&o));
