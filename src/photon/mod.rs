@@ -519,7 +519,10 @@ impl PhotonMap {
                     let flux = flux / (p_pick * count as f32);
                     let first = out.len();
                     trace_path(frame, m, o, dir, flux, &s, max_bounces, &mut out);
-                    if matches!(sources[k], Source::Punctual(_)) && out.len() > first {
+                    if direct == GatherDirect::ShadowRays
+                        && matches!(sources[k], Source::Punctual(_))
+                        && out.len() > first
+                    {
                         firsts.push(first as u32);
                     }
                 }
@@ -562,30 +565,25 @@ impl PhotonMap {
         map
     }
 
-    /// The irradiance the punctual lights give gather hit `sp` by shadow rays, counted by
-    /// its shading normal as a photon arriving from each would be (cos θ_s / cos θ_g, as
-    /// the photons are stored), where the estimates leave their first hits out
-    /// ([`GatherDirect::ShadowRays`]); zero where the estimates hold them.
+    /// The irradiance the punctual lights give gather hit `sp` by shadow rays, where the
+    /// estimates leave their first hits out ([`GatherDirect::ShadowRays`]); zero where the
+    /// estimates hold them.
     pub fn direct_at_hit(&self, frame: &FrameScene, sp: &SurfacePoint) -> Vec3 {
-        if self.direct == GatherDirect::Photons {
-            return Vec3::ZERO;
-        }
-        let mut cast = 0;
-        let mut shadow = ShadowRays::traced(&mut cast);
-        let o = sp.spawn();
-        let mut e = Vec3::ZERO;
-        for l in &frame.lights {
-            if let Some((wi, el)) = punctual_incident_from(frame, o, sp.ns, sp.ng, l, &mut shadow) {
-                e += el * (sp.ng.dot(wi) * shading_normal_factor(sp.ng, sp.ns, wi));
-            }
-        }
-        e
+        self.direct_toward(frame, sp.spawn(), sp.ns, sp.ng)
     }
 
     /// [`Self::direct_at_hit`] at a point known only by its normal `n` and the origin `o` of
     /// its shadow rays, already off its surface (an anchor's decoded position lifted along
     /// its normal, `crate::integrator::anchors`).
     pub fn direct_from(&self, frame: &FrameScene, o: Vec3, n: Vec3) -> Vec3 {
+        self.direct_toward(frame, o, n, n)
+    }
+
+    /// The punctual lights' irradiance by shadow rays from `o`, at a point with shading
+    /// normal `ns` and geometric normal `ng`, counted by the shading normal as a photon
+    /// arriving from each light would be (cos θ_s / cos θ_g, as the photons are stored);
+    /// zero where the estimates hold the first hits.
+    fn direct_toward(&self, frame: &FrameScene, o: Vec3, ns: Vec3, ng: Vec3) -> Vec3 {
         if self.direct == GatherDirect::Photons {
             return Vec3::ZERO;
         }
@@ -593,8 +591,8 @@ impl PhotonMap {
         let mut shadow = ShadowRays::traced(&mut cast);
         let mut e = Vec3::ZERO;
         for l in &frame.lights {
-            if let Some((wi, el)) = punctual_incident_from(frame, o, n, n, l, &mut shadow) {
-                e += el * n.dot(wi);
+            if let Some((wi, el)) = punctual_incident_from(frame, o, ns, ng, l, &mut shadow) {
+                e += el * (ng.dot(wi) * shading_normal_factor(ng, ns, wi));
             }
         }
         e

@@ -484,3 +484,18 @@ pub fn relative_rms(a: &FrameImage, b: &FrameImage) -> f64 {
     }
     (d / n.max(1e-300)).sqrt()
 }
+
+/// `benches/sponza/job.json` (its moving box, its lights) with `method` and the keys of
+/// `settings` added to its `method` object, at 80 × 45, seen from a fixed camera where the
+/// shot starts.
+pub fn sponza_from_a_fixed_camera(method: &str, settings: serde_json::Value) -> Job {
+    let path = root().join("benches/sponza/job.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    j["camera"] = serde_json::json!({"position": [-11, 2.5, -0.5], "look_at": [-1, 2.5, -0.5], "yfov_deg": 55});
+    j["resolution"] = serde_json::json!([80, 45]);
+    j["method"]["name"] = method.into();
+    for (key, value) in settings.as_object().unwrap() {
+        j["method"][key] = value.clone();
+    }
+    job_from_json(&path, &j.to_string()).unwrap()
+}

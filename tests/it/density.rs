@@ -35,17 +35,6 @@ fn camera_samples_off_the_pixel_centres_read_records() {
     }
 }
 
-/// `benches/sponza/job.json` (its moving box, its lights) with `method`, at 80 × 45, seen
-/// from a fixed camera where the shot starts.
-fn sponza_from_a_fixed_camera(method: &str) -> anchorage::job::Job {
-    let path = root().join("benches/sponza/job.json");
-    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
-    j["camera"] = serde_json::json!({"position": [-11, 2.5, -0.5], "look_at": [-1, 2.5, -0.5], "yfov_deg": 55});
-    j["resolution"] = serde_json::json!([80, 45]);
-    j["method"]["name"] = method.into();
-    job_from_json(&path, &j.to_string()).unwrap()
-}
-
 /// Camera samples that no record covers read spot records (`Record::spot`): made at the
 /// samples in the frame that first needs them, linked to anchors like any record, and read
 /// again by later frames' samples within their own Ward radius (to the relaxed threshold,
@@ -57,8 +46,12 @@ fn sponza_from_a_fixed_camera(method: &str) -> anchorage::job::Job {
 /// The images are held to brute force's by the anchors' other tests.
 #[test]
 fn samples_no_record_covers_read_spot_records_kept_from_frame_to_frame() {
-    let run =
-        |method: &str| super::anchors::render_sequence(&sponza_from_a_fixed_camera(method), 0..4);
+    let run = |method: &str| {
+        super::anchors::render_sequence(
+            &sponza_from_a_fixed_camera(method, serde_json::json!({})),
+            0..4,
+        )
+    };
     let (anchors, brute) = (run("anchors"), run("brute-force"));
     let (mut new, mut spot) = (0, 0);
     for ((_, sa), (_, sb)) in anchors.iter().zip(&brute) {
@@ -386,7 +379,7 @@ fn a_moving_camera_keeps_the_records_of_earlier_frames_to_the_relaxed_threshold(
 /// that land beside the enclosed records so far.
 #[test]
 fn a_fixed_camera_places_each_enclosed_record_once() {
-    let job = sponza_from_a_fixed_camera("anchors");
+    let job = sponza_from_a_fixed_camera("anchors", serde_json::json!({}));
     let scene = job.load_scene().unwrap();
     let resources = pipeline::new_resources(&job, &scene).unwrap();
     let mut state = FrameState::default();

@@ -325,35 +325,25 @@ fn a_prop_driving_off_the_set_leaves_the_sun_photons_on_it_unchanged() {
     );
 }
 
-/// Sponza (white metal everywhere, glTF's default) at 80 × 45 from the shot's first camera
-/// position, with `method` and its settings as the JSON object's members `extra`.
-fn sponza(method: &str, extra: &str) -> anchorage::job::Job {
-    let path = root().join("benches/sponza/job.json");
-    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
-    j["camera"] = serde_json::json!({"position": [-11, 2.5, -0.5], "look_at": [-1, 2.5, -0.5], "yfov_deg": 55});
-    j["resolution"] = serde_json::json!([80, 45]);
-    j["method"] = serde_json::from_str(&format!(r#"{{"name":"{method}"{extra}}}"#)).unwrap();
-    job_from_json(&path, &j.to_string()).unwrap()
-}
-
 /// `method.gather_direct`: shadow rays from each gather hit (and anchor) to the punctual
-/// lights stand in for the photons' first hits, whose disc estimates read low on Sponza's
-/// sunlit strips, edges and corners. The first bounce of the sun is most of its indirect
-/// light: with shadow rays the mean indirect light of brute force and of anchors lies
+/// lights stand in for the estimates of the photons' first hits, which read Sponza's indirect
+/// light low (white metal everywhere, glTF's default; 80 × 45 from the shot's first camera
+/// position): with shadow rays the mean indirect light of brute force and of anchors lies
 /// nearer the path tracer's than with the photons' estimate, and anchors read what brute
 /// force reads.
 #[test]
 fn shadow_rays_at_gather_hits_bring_sponzas_indirect_light_nearer_the_path_tracer() {
-    let mean_of = |method: &str, extra: &str, frames: &[i32]| {
-        let imgs = render_frames(&sponza(method, extra), frames);
+    use serde_json::json;
+    let mean_of = |method: &str, settings: serde_json::Value, frames: &[i32]| {
+        let imgs = render_frames(&sponza_from_a_fixed_camera(method, settings), frames);
         mean_indirect(imgs.last().unwrap())
     };
-    let rays = r#","gather_direct":"shadow-rays""#;
-    let pt = mean_of("path-trace", r#","path_samples":256"#, &[2]);
-    let bf_photons = mean_of("brute-force", "", &[2]);
-    let bf_rays = mean_of("brute-force", rays, &[2]);
-    let an_photons = mean_of("anchors", "", &[0, 1, 2]);
-    let an_rays = mean_of("anchors", rays, &[0, 1, 2]);
+    let rays = || json!({"gather_direct": "shadow-rays"});
+    let pt = mean_of("path-trace", json!({"path_samples": 256}), &[2]);
+    let bf_photons = mean_of("brute-force", json!({}), &[2]);
+    let bf_rays = mean_of("brute-force", rays(), &[2]);
+    let an_photons = mean_of("anchors", json!({}), &[0, 1, 2]);
+    let an_rays = mean_of("anchors", rays(), &[0, 1, 2]);
     let err = |m: f64| (m - pt) / pt;
     eprintln!(
         "mean indirect: path-trace {pt:.4}; brute force {bf_photons:.4} ({:+.3}) by photons, \
