@@ -555,7 +555,7 @@ impl MethodSettings {
                 "rebalance must be >= 1 and importons_per_pixel in (0, 16]",
             );
         }
-        if !(a.k_scale > 0.0 && a.k_scale <= 64.0) {
+        if a.k_scale.is_some_and(|s| !(s > 0.0 && s <= 64.0)) {
             return bad("anchors.k_scale", "must be in (0, 64]");
         }
         Ok(())

@@ -311,7 +311,7 @@ impl Attacher<'_> {
     pub fn estimate_created(&self, set: &mut AnchorSet, created: &[AnchorId]) {
         let q = set.quantizer;
         let lift = set.lift(self.frame.static_radius());
-        let k = self.params.anchor_k(self.k);
+        let k = self.params.anchor_k(self.k, self.pm.direct);
         let estimates: Vec<(Vec3, f32)> = {
             let set = &*set;
             let positions: Vec<Vec3> = created

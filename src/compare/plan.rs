@@ -218,7 +218,7 @@ impl Setting {
             Setting::Strata(v) => m.strata = Some(v),
             Setting::Error(v) => m.error = Some(v),
             Setting::Visibility(v) => job.render.visibility = v,
-            Setting::AnchorK(v) => m.anchors.get_or_insert_default().k_scale = v,
+            Setting::AnchorK(v) => m.anchors.get_or_insert_default().k_scale = Some(v),
             Setting::Glossy(v) => m.glossy_mode = Some(v),
             Setting::GlossyRays(v) => m.glossy_rays = Some(v),
             Setting::BucketStrata(v) => {

@@ -210,7 +210,8 @@ pub fn update(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed, nearest) = reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) =
+        reestimate_anchors(ctx.scene, set, pm, params.anchor_k(), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true); // every anchor may reflect another colour
@@ -294,7 +295,8 @@ pub fn relight(
     if albedo {
         refresh_albedo(ctx, set, &at);
     }
-    let (count, mut changed, nearest) = reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k), &at);
+    let (count, mut changed, nearest) =
+        reestimate_anchors(ctx.scene, set, pm, params.anchor_k(), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true);
