@@ -48,6 +48,7 @@ declare -A TESTS=(
   [enclosed-placed-again]="density::a_fixed_camera"
   [anchor-direct-dropped]="photons::shadow_rays_at_gather"
   [first-hits-counted-twice]="photons::shadow_rays_at_gather"
+  [anchors-wide-with-shadow-rays]="photons::shadow_rays_at_gather"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -56,7 +57,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   uncached-reads-without-albedo reshoot-ray-test-short spot-records-never-read spot-records-dropped
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
   references-one-share relink-first-found retry-takes-fewer integration-untimed
-  shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice)
+  shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
+  anchors-wide-with-shadow-rays)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
