@@ -63,7 +63,10 @@ pub struct Counts {
     pub emissive_triangles: u64,
     pub pixels: u64,
     pub camera_rays: u64,
-    /// Shadow rays, and the BRDF-sampled rays of direct light at glossy camera hits.
+    /// Shadow rays of the direct light at camera hits, and the BRDF-sampled rays of direct
+    /// light at glossy camera hits. Not counted: the shadow rays that `method.gather_direct`
+    /// `shadow-rays` casts from gather hits and anchors (their time is irradiance
+    /// estimation's).
     pub shadow_rays: u64,
     /// Glossy reflection rays traced at camera hits (cached methods).
     #[serde(default)]
