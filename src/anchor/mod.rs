@@ -99,8 +99,8 @@ impl AnchorParams {
     /// On Sponza's frame 8 (160 × 90, production) the indirect light reads 10.3 % low at 1
     /// and 11.6 % low at 2 (brute force, at 1 by construction, 9.2 %), and with 64 times the
     /// photons 1.7 % and 3.3 % (brute force 1.0 %), each against the path tracer; over
-    /// frames 0–8 the anchors still flicker less than brute force at 1 (README, "With shadow
-    /// rays at the gather hits").
+    /// frames 0–8 the anchors still flicker less than brute force at 1 (README, "Photons per
+    /// anchor estimate with shadow rays").
     pub fn default_k_scale(direct: GatherDirect) -> f32 {
         match direct {
             GatherDirect::Photons => 2.0,
