@@ -552,16 +552,20 @@ impl PhotonMap {
                 Arc::new(knn::PointTree::new(&pts))
             }
         };
-        map.ordered = match direct {
-            GatherDirect::Photons => map.tree.in_tree_order(&map.photons),
-            GatherDirect::ShadowRays => {
-                let mut estimated = map.photons.clone();
-                for &i in &firsts {
-                    estimated[i as usize].power = Vec3::ZERO;
-                }
-                map.tree.in_tree_order(&estimated)
+        map.ordered = map.tree.in_tree_order(&map.photons);
+        if !firsts.is_empty() {
+            // The estimates read the ordered copy: the first hits lose their power there.
+            let mut first = vec![false; map.photons.len()];
+            for &i in &firsts {
+                first[i as usize] = true;
             }
-        };
+            let tree = &map.tree;
+            map.ordered
+                .par_iter_mut()
+                .enumerate()
+                .filter(|(pos, _)| first[tree.item(*pos as u32) as usize])
+                .for_each(|(_, p)| p.power = Vec3::ZERO);
+        }
         map
     }
 
