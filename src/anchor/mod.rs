@@ -91,7 +91,7 @@ impl AnchorParams {
     /// The default `k_scale` for where the gather hits' direct light comes from.
     ///
     /// With [`GatherDirect::Photons`], 2: anchors are far fewer than gather hits, so a wider
-    /// estimate per anchor costs little, and it holds the first bounce's light, whose noise
+    /// estimate per anchor costs little, and it holds the first bounce's light, whose variance
     /// the wider estimate halves; on the example's fixed camera it reads nearer the
     /// path-traced reference than brute force does and flickers less. With
     /// [`GatherDirect::ShadowRays`], 1: the estimate then holds only light that has bounced
