@@ -82,7 +82,7 @@ pub struct AnchorParams {
     pub importons_per_pixel: f32,
     /// Photons per anchor estimate, as a multiple of the method's `k`. Default 2 where the
     /// photon estimates hold the first bounce (`gather_direct` `photons`), 1 where shadow
-    /// rays stand in for it (`shadow-rays`).
+    /// rays stand in for it (`shadow-rays`, in a frame with a punctual light).
     #[schemars(extend("exclusiveMinimum" = 0, "maximum" = 64))]
     pub k_scale: Option<f32>,
 }
@@ -95,7 +95,8 @@ impl AnchorParams {
     /// the wider estimate halves; on the example's fixed camera it reads nearer the
     /// path-traced reference than brute force does and flickers less. With
     /// [`GatherDirect::ShadowRays`], 1: the estimate then holds only light that has bounced
-    /// at least once, smooth enough that the wider disc's bias outweighs its lower noise.
+    /// at least once (and emissive triangles' first hits), smooth enough that the wider
+    /// disc's bias outweighs its lower noise.
     /// On Sponza's frame 8 (160 × 90, production) the indirect light reads 10.3 % low at 1
     /// and 11.6 % low at 2 (brute force, at 1 by construction, 9.2 %), and with 64 times the
     /// photons 1.7 % and 3.3 % (brute force 1.0 %), each against the path tracer; over
@@ -108,8 +109,9 @@ impl AnchorParams {
         }
     }
 
-    /// Photons per anchor estimate for the method's `k`, with the gather hits' direct light
-    /// from `direct`.
+    /// Photons per anchor estimate for the method's `k`, where the photon map's estimates
+    /// hold what `direct` says ([`crate::photon::PhotonMap::direct`]: a frame without
+    /// punctual lights holds every first hit, whatever `gather_direct` asks).
     pub fn anchor_k(&self, k: usize, direct: GatherDirect) -> usize {
         let scale = self.k_scale.unwrap_or(Self::default_k_scale(direct));
         ((k as f32 * scale).round() as usize).max(1)

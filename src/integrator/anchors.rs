@@ -211,7 +211,7 @@ pub fn update(
         refresh_albedo(ctx, set, &at);
     }
     let (count, mut changed, nearest) =
-        reestimate_anchors(ctx.scene, set, pm, params.anchor_k(), &at);
+        reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k, pm.direct), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true); // every anchor may reflect another colour
@@ -296,7 +296,7 @@ pub fn relight(
         refresh_albedo(ctx, set, &at);
     }
     let (count, mut changed, nearest) =
-        reestimate_anchors(ctx.scene, set, pm, params.anchor_k(), &at);
+        reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k, pm.direct), &at);
     st.anchors_reestimated = count;
     if albedo {
         changed.fill(true);

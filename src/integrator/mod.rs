@@ -104,12 +104,6 @@ pub const DEPTH: u32 = 64;
 pub const MAX_PHOTON_RADIUS: f32 = 0.05;
 
 impl GiParams {
-    /// Photons per anchor estimate (`anchors.k_scale` × `k`, the scale's default set by
-    /// `gather_direct`: [`AnchorParams::default_k_scale`]).
-    pub fn anchor_k(&self) -> usize {
-        self.anchors.anchor_k(self.k as usize, self.gather_direct)
-    }
-
     pub fn preset(p: Preset) -> Self {
         let cache = CacheParams::default();
         match p {

@@ -136,7 +136,10 @@ pub struct PhotonMap {
     pub emitted_power: Vec3,
     /// No look-up reaches farther than this (scene units; see the module doc).
     pub max_radius: f32,
-    /// Whether the estimates hold the first hits of punctual lights' photons.
+    /// Whether the estimates hold the first hits of punctual lights' photons:
+    /// [`GatherDirect::ShadowRays`] only where it was asked for and the frame has a punctual
+    /// light; without one there is nothing for shadow rays to stand in for, and the map is
+    /// the one [`GatherDirect::Photons`] gives.
     pub direct: GatherDirect,
 }
 
@@ -484,7 +487,11 @@ impl PhotonMap {
             emitted: count,
             emitted_power,
             max_radius: max_radius * frame.static_radius(),
-            direct,
+            direct: if frame.lights.is_empty() {
+                GatherDirect::Photons
+            } else {
+                direct
+            },
         };
         if total <= 0.0 || count == 0 {
             return map;
@@ -573,6 +580,10 @@ impl PhotonMap {
     /// estimates leave their first hits out ([`GatherDirect::ShadowRays`]); zero where the
     /// estimates hold them.
     pub fn direct_at_hit(&self, frame: &FrameScene, sp: &SurfacePoint) -> Vec3 {
+        // Called at every gather hit: with the photons' estimate, not even the ray's origin.
+        if self.direct == GatherDirect::Photons {
+            return Vec3::ZERO;
+        }
         self.direct_toward(frame, sp.spawn(), sp.ns, sp.ng)
     }
 
@@ -580,17 +591,17 @@ impl PhotonMap {
     /// its shadow rays, already off its surface (an anchor's decoded position lifted along
     /// its normal, `crate::integrator::anchors`).
     pub fn direct_from(&self, frame: &FrameScene, o: Vec3, n: Vec3) -> Vec3 {
+        if self.direct == GatherDirect::Photons {
+            return Vec3::ZERO;
+        }
         self.direct_toward(frame, o, n, n)
     }
 
     /// The punctual lights' irradiance by shadow rays from `o`, at a point with shading
     /// normal `ns` and geometric normal `ng`, counted by the shading normal as a photon
-    /// arriving from each light would be (cos θ_s / cos θ_g, as the photons are stored);
-    /// zero where the estimates hold the first hits.
+    /// arriving from each light would be (cos θ_s / cos θ_g, as the photons are stored).
+    /// The rays are not counted in the stats (`counts.shadow_rays`).
     fn direct_toward(&self, frame: &FrameScene, o: Vec3, ns: Vec3, ng: Vec3) -> Vec3 {
-        if self.direct == GatherDirect::Photons {
-            return Vec3::ZERO;
-        }
         let mut cast = 0;
         let mut shadow = ShadowRays::traced(&mut cast);
         let mut e = Vec3::ZERO;

@@ -705,7 +705,7 @@ fn searches_bounded_by_any_reach_find_the_unbounded_ones_photons() {
     let resources = pipeline::new_resources(&job, &scene).unwrap();
     let (_, pm) = frame_photons(&job, &scene, &resources, 10);
     let params = job.method.params();
-    let k = params.anchor_k();
+    let k = params.anchors.anchor_k(params.k as usize, pm.direct);
     let r2_max = pm.max_radius * pm.max_radius;
     let (mut checked, mut retried) = (0, 0);
     for p in pm.photons.iter().step_by(97).take(300) {
@@ -742,7 +742,7 @@ fn assert_anchors_hold_fresh_estimates(
 ) {
     let params = job.method.params();
     let set = state.anchors.as_ref().unwrap();
-    let k = params.anchor_k();
+    let k = params.anchors.anchor_k(params.k as usize, pm.direct);
     let mut checked = 0;
     for a in set.anchors.iter().filter(|a| a.is_live()) {
         let fresh = pm.irradiance(a.position(&set.quantizer), a.normal(), k);

@@ -375,3 +375,21 @@ fn shadow_rays_at_gather_hits_bring_sponzas_indirect_light_nearer_the_path_trace
         err(bf_rays)
     );
 }
+
+/// A room lit only by an emissive lamp has no punctual light whose first hits shadow rays
+/// could stand in for: with `gather_direct` `shadow-rays` its photon map is the one
+/// `photons` gives, and so are its anchors' estimates (the default `anchors.k_scale`
+/// follows what the map holds, `PhotonMap::direct`), and the frames are the same.
+#[test]
+fn a_room_lit_only_by_an_emissive_lamp_renders_alike_with_either_gather_direct() {
+    let frames = [0, 1, 2];
+    let by = |settings: &str| render_frames(&super::anchors::example("anchors", settings), &frames);
+    let photons = by("");
+    let rays = by(r#","gather_direct":"shadow-rays""#);
+    for ((a, b), f) in photons.iter().zip(&rays).zip(frames) {
+        assert!(
+            a.beauty == b.beauty && a.indirect == b.indirect,
+            "frame {f} differs between the two settings"
+        );
+    }
+}
