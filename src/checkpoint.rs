@@ -7,15 +7,20 @@
 //! ```text
 //! "ANCHSTAT"             8 bytes, the magic
 //! format                 u32 little-endian, FORMAT
-//! header                 postcard: anchorage's version, the job's content hash, the frame
+//! header                 postcard: anchorage's version and build, the job's content hash,
+//!                        the frame, the state's checksum
 //! state                  DEFLATE (zlib) of postcard: the FrameState
 //! ```
 //!
 //! The magic and the format come first and fixed, so that a file of another format is named
 //! as such before anything else is decoded. A checkpoint is only read back by the anchorage
-//! version, job and scene content it was written for: the state links records and anchors
+//! build, job and scene content it was written for: the state links records and anchors
 //! to the geometry, photon sequences and settings of one job, and reading it into another
-//! would give a silently wrong image. The content hash ([`job_hash`]) covers the job's
+//! would give a silently wrong image. The same holds across builds: a state made by a build
+//! that places records, estimates or defaults a setting otherwise is not the state this
+//! build would have made, and a shot resumed from it would differ from one rendered through
+//! by either. The build is named by a hash of its sources (`build.rs`, `ANCHORAGE_BUILD`),
+//! which every change to the renderer changes, where the crate's version does not. The content hash ([`job_hash`]) covers the job's
 //! settings (its JSON, less the keys that only say which frames to render and where to write
 //! them, plus the command line's method and visibility overrides) and the bytes of every file
 //! the scene was read from, so a farm machine that mounts the shot at another path hashes
@@ -32,12 +37,15 @@ use crate::output;
 use crate::scene::Scene;
 use crate::session::FrameState;
 
+/// This build's identity, 64 hex digits: the hash of its sources (`build.rs`).
+pub const BUILD: &str = env!("ANCHORAGE_BUILD");
+
 /// The first bytes of every checkpoint.
 pub const MAGIC: &[u8; 8] = b"ANCHSTAT";
 
 /// The checkpoint format this build writes and reads. A change to [`FrameState`]'s serde
 /// layout or to this file's layout increments it.
-pub const FORMAT: u32 = 6;
+pub const FORMAT: u32 = 7;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
 /// memory budget; a file beyond this is not one of ours.
@@ -48,6 +56,8 @@ const MAX_BYTES: u64 = 64 << 30;
 pub struct Header {
     /// The anchorage version that wrote it (`CARGO_PKG_VERSION`).
     pub version: String,
+    /// The build that wrote it: the hash of its sources, [`BUILD`].
+    pub build: String,
     /// [`job_hash`] of the job it belongs to.
     pub job: [u8; 32],
     /// The frame after which the state was taken.
@@ -101,6 +111,7 @@ pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Resu
         .and_then(|body| {
             let header = Header {
                 version: env!("CARGO_PKG_VERSION").to_string(),
+                build: BUILD.to_string(),
                 job,
                 frame,
                 body: *blake3::hash(&body).as_bytes(),
@@ -118,7 +129,7 @@ pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Resu
 
 /// Reads the checkpoint at `path` for the job hashed `job`, whose records have `strata`
 /// strata each: its frame and state. A file that is not a checkpoint, or one of another
-/// format, anchorage version or job, or damaged, is refused with an input error that says
+/// format, anchorage build or job, or damaged, is refused with an input error that says
 /// which.
 pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameState)> {
     let bad = |m: String| Error::input(path, "checkpoint", m);
@@ -137,10 +148,13 @@ pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameStat
     let (header, rest): (Header, _) = postcard::take_from_bytes(&bytes[12..])
         .map_err(|e| bad(format!("has a damaged header: {e}")))?;
     let ours = env!("CARGO_PKG_VERSION");
-    if header.version != ours {
+    if header.version != ours || header.build != BUILD {
         return Err(bad(format!(
-            "was written by anchorage {}; this is {ours}, whose state may differ",
-            header.version
+            "was written by anchorage {} (build {}); this is {ours} (build {}), whose state \
+             may differ: render the shot from its first frame, or with the build that wrote it",
+            header.version,
+            header.build.get(..12).unwrap_or(&header.build),
+            &BUILD[..12]
         )));
     }
     if header.job != job {
@@ -195,6 +209,18 @@ mod tests {
         bytes.truncate(n - 4);
         std::fs::write(&p, &bytes).unwrap();
         assert!(msg(read(&p, [7; 32], 64)).contains("damaged"));
+        // Written by another build of the same version: refused, naming both builds.
+        write(&p, [7; 32], 4, &state).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let (mut header, rest): (Header, _) = postcard::take_from_bytes(&bytes[12..]).unwrap();
+        header.build = "0123456789ab".repeat(5) + "cdef";
+        let mut other = bytes[..12].to_vec();
+        other.extend(postcard::to_stdvec(&header).unwrap());
+        other.extend(rest);
+        std::fs::write(&p, &other).unwrap();
+        let m = msg(read(&p, [7; 32], 64));
+        assert!(m.contains("build 0123456789ab)"), "{m}");
+        assert!(m.contains(&BUILD[..12]), "{m}");
         std::fs::write(&p, b"{\"not\": \"a state\"}").unwrap();
         assert!(msg(read(&p, [7; 32], 64)).contains("not an anchorage checkpoint"));
     }

@@ -12,7 +12,7 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(
     name = "anchorage",
-    version,
+    version = env!("ANCHORAGE_VERSION"),
     about = "Batch renderer for animation: multilayer EXR per frame"
 )]
 struct Cli {
