@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Mutation check for the anchor method, the cache's density rules, ray offsets, the glossy fit
-# and watch mode's replay: applies each deliberate
+# watch mode's replay and checkpoints: applies each deliberate
 # breakage kept in scripts/mutations/NAME.patch to the source, builds the tests, runs the
 # tests that are meant to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
 # restored after each one, also on interrupt.
@@ -49,6 +49,7 @@ declare -A TESTS=(
   [anchor-direct-dropped]="photons::shadow_rays_at_gather"
   [first-hits-counted-twice]="photons::shadow_rays_at_gather"
   [anchors-wide-with-shadow-rays]="photons::shadow_rays_at_gather"
+  [checkpoint-build-unchecked]="shot::a_foreign_checkpoint"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -58,7 +59,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
   references-one-share relink-first-found retry-takes-fewer integration-untimed
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
-  anchors-wide-with-shadow-rays)
+  anchors-wide-with-shadow-rays checkpoint-build-unchecked)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")

@@ -127,9 +127,9 @@ fn resume_and_a_full_warm_up_reproduce_a_full_run() {
     assert!(exr(&full, 2) != exr(&cold, 2));
 }
 
-/// A checkpoint of another job, of an edited scene, of the wrong frame, or no checkpoint at
-/// all, is refused with exit code 2, a message naming the file and the reason, and no frame
-/// written.
+/// A checkpoint of another job, of an edited scene, of another build, of the wrong frame, or
+/// no checkpoint at all, is refused with exit code 2, a message naming the file and the
+/// reason, and no frame written.
 #[test]
 fn a_foreign_checkpoint_is_refused() {
     let d = tempdir();
@@ -172,6 +172,18 @@ fn a_foreign_checkpoint_is_refused() {
     std::fs::write(&gltf, doc.to_string()).unwrap();
     refused(&job, "2-3", &state, "another job");
     std::fs::write(&gltf, &text).unwrap();
+    // The same job and version, written by another build (other sources).
+    let bytes = std::fs::read(&state).unwrap();
+    let (mut header, rest): (anchorage::checkpoint::Header, _) =
+        postcard::take_from_bytes(&bytes[12..]).unwrap();
+    assert_eq!(header.build, anchorage::checkpoint::BUILD);
+    header.build = "feedc0ffee00".repeat(5) + "1234";
+    let mut other = bytes[..12].to_vec();
+    other.extend(postcard::to_stdvec(&header).unwrap());
+    other.extend(rest);
+    let foreign = d.path().join("other-build.state");
+    std::fs::write(&foreign, &other).unwrap();
+    refused(&job, "2-3", &foreign, "(build feedc0ffee00)");
     // The right job, the wrong frame.
     refused(&job, "3-4", &state, "state after frame 1");
     // Not a checkpoint.
