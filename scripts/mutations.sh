@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Mutation check for the anchor method, the cache's density rules, ray offsets, the glossy fit
+# Mutation check for the anchor method, the cache's density rules, ray offsets, the glossy fit,
 # watch mode's replay and checkpoints: applies each deliberate
 # breakage kept in scripts/mutations/NAME.patch to the source, builds the tests, runs the
 # tests that are meant to catch it, and reports CAUGHT (some test failed) or MISSED (all passed); the source is
