@@ -281,7 +281,7 @@ pub struct MethodSettings {
     /// Where a gather hit's direct light from punctual lights comes from: `photons` (the
     /// paper's: the photon map's estimate) or `shadow-rays` (a shadow ray to each punctual
     /// light from each gather hit and anchor; the photon map for the light that has
-    /// bounced). Default `photons`.
+    /// bounced). Default `shadow-rays`.
     pub gather_direct: Option<GatherDirect>,
     /// `[M, N]`: θ × φ strata of the final gather, M·N rays per cache record. Default: the
     /// preset's (8×24, 12×36, 30×60).

@@ -55,7 +55,7 @@ pub struct GiParams {
     /// radius ([`crate::photon::PhotonMap::max_radius`]). Default 0.05 in every preset.
     pub max_photon_radius: f32,
     /// Where gather hits' direct light from punctual lights comes from. Default
-    /// [`GatherDirect::Photons`] in every preset.
+    /// [`GatherDirect::ShadowRays`] in every preset.
     pub gather_direct: GatherDirect,
     pub cache: CacheParams,
     /// `anchors`: anchor density and reuse heuristics.
@@ -112,7 +112,7 @@ impl GiParams {
                 k: 32,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
-                gather_direct: GatherDirect::Photons,
+                gather_direct: GatherDirect::ShadowRays,
                 cache: CacheParams {
                     strata: [8, 24],
                     error: 0.4,
@@ -131,7 +131,7 @@ impl GiParams {
                 k: 64,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
-                gather_direct: GatherDirect::Photons,
+                gather_direct: GatherDirect::ShadowRays,
                 cache,
                 anchors: AnchorParams::default(),
                 path_samples: 256,
@@ -144,7 +144,7 @@ impl GiParams {
                 k: 100,
                 photon_bounces: DEPTH,
                 max_photon_radius: MAX_PHOTON_RADIUS,
-                gather_direct: GatherDirect::Photons,
+                gather_direct: GatherDirect::ShadowRays,
                 cache: CacheParams {
                     strata: [30, 60],
                     error: 0.15,

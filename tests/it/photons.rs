@@ -341,10 +341,11 @@ fn shadow_rays_at_gather_hits_bring_sponzas_indirect_light_nearer_the_path_trace
         mean_indirect(imgs.last().unwrap())
     };
     let rays = || json!({"gather_direct": "shadow-rays"});
+    let photons = || json!({"gather_direct": "photons"});
     let pt = mean_of("path-trace", json!({"path_samples": 256}), &[2]);
-    let bf_photons = mean_of("brute-force", json!({}), &[2]);
+    let bf_photons = mean_of("brute-force", photons(), &[2]);
     let bf_rays = mean_of("brute-force", rays(), &[2]);
-    let an_photons = mean_of("anchors", json!({}), &[0, 1, 2]);
+    let an_photons = mean_of("anchors", photons(), &[0, 1, 2]);
     let an_rays = mean_of("anchors", rays(), &[0, 1, 2]);
     let err = |m: f64| (m - pt) / pt;
     eprintln!(
@@ -384,7 +385,7 @@ fn shadow_rays_at_gather_hits_bring_sponzas_indirect_light_nearer_the_path_trace
 fn a_room_lit_only_by_an_emissive_lamp_renders_alike_with_either_gather_direct() {
     let frames = [0, 1, 2];
     let by = |settings: &str| render_frames(&super::anchors::example("anchors", settings), &frames);
-    let photons = by("");
+    let photons = by(r#","gather_direct":"photons""#);
     let rays = by(r#","gather_direct":"shadow-rays""#);
     for ((a, b), f) in photons.iter().zip(&rays).zip(frames) {
         assert!(
