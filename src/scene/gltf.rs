@@ -36,11 +36,10 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
 /// error `README.md` measures (§ "What is modelled").
 const ROUGH_METAL: &str = "the cached methods (anchors, brute-force, precomputed) treat \
      the light such a surface reflects onto others as diffuse (its hemispherical albedo times \
-     its irradiance) and light its glossy lobe from a fit of the cache's incident light; \
-     their photon estimates' bias weighs more on such metals (Sponza in white metal of \
-     roughness 1 reads about 25 % low in indirect light against the path tracer, in a white \
-     diffuse material 11 %; with 16 times the photons, 12 %; with method.gather_direct \
-     \"shadow-rays\", 9 %)";
+     its irradiance) and light its glossy lobe from a fit of the cache's incident light \
+     (Sponza in white metal of roughness 1 reads its indirect light about 9 % low against \
+     the path tracer at the production preset's photon count, 1 % with 64 times the photons; \
+     with method.gather_direct \"photons\", 25 %)";
 
 /// The `alphaCutoff` a `BLEND` material is cut out at: BLEND is rendered as a cut-out
 /// (deterministic, noise-free), with a warning per material.
