@@ -20,8 +20,12 @@ fn main() {
         collect(&root, &root.join(dir), &mut files);
         println!("cargo:rerun-if-changed={dir}");
     }
+    // A source package without its lock file (none is written until cargo resolves one)
+    // hashes without it.
     for file in ["Cargo.toml", "Cargo.lock"] {
-        files.push(PathBuf::from(file));
+        if root.join(file).exists() {
+            files.push(PathBuf::from(file));
+        }
         println!("cargo:rerun-if-changed={file}");
     }
     files.sort();

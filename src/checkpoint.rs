@@ -20,11 +20,12 @@
 //! that places records, estimates or defaults a setting otherwise is not the state this
 //! build would have made, and a shot resumed from it would differ from one rendered through
 //! by either. The build is named by a hash of its sources (`build.rs`, `ANCHORAGE_BUILD`),
-//! which every change to the renderer changes, where the crate's version does not. The content hash ([`job_hash`]) covers the job's
-//! settings (its JSON, less the keys that only say which frames to render and where to write
-//! them, plus the command line's method and visibility overrides) and the bytes of every file
-//! the scene was read from, so a farm machine that mounts the shot at another path hashes
-//! the same. Files are written atomically ([`output::write_atomic`]).
+//! which every change to the renderer changes, where the crate's version does not.
+//!
+//! The content hash ([`job_hash`]) covers the job's settings (its JSON, less the keys that
+//! only say which frames to render and where to write them, plus the command line's method
+//! and visibility overrides) and the bytes of every file the scene was read from, so a farm
+//! machine that mounts the shot at another path hashes the same. Files are written atomically ([`output::write_atomic`]).
 
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
