@@ -170,6 +170,7 @@ pub fn render_frame_with(
             c.caches_spot_made = gs.caches_spot_made;
             c.rays_shot = gs.rays_shot;
             c.uncached_samples = gs.uncached_samples;
+            c.gather_shadow_rays = gs.gather_shadow_rays;
             c.caches_retired = gs.caches_retired;
             c.rays_reshot = gs.rays_shot - gs.uncached_rays;
             if let Some(a) = &gs.anchors {

@@ -64,10 +64,14 @@ pub struct Counts {
     pub pixels: u64,
     pub camera_rays: u64,
     /// Shadow rays of the direct light at camera hits, and the BRDF-sampled rays of direct
-    /// light at glossy camera hits. Not counted: the shadow rays that `method.gather_direct`
-    /// `shadow-rays` casts from gather hits and anchors (their time is irradiance
-    /// estimation's).
+    /// light at glossy camera hits. Those that `method.gather_direct` `shadow-rays` casts
+    /// from gather hits and anchors count in `gather_shadow_rays`.
     pub shadow_rays: u64,
+    /// Cached methods with `method.gather_direct` `shadow-rays`: the shadow rays cast from
+    /// gather hits and anchors to the punctual lights (their time is irradiance
+    /// estimation's and attachment's, where new anchors are estimated). 0 by photons.
+    #[serde(default)]
+    pub gather_shadow_rays: u64,
     /// Glossy reflection rays traced at camera hits (cached methods).
     #[serde(default)]
     pub glossy_rays: u64,

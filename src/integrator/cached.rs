@@ -126,6 +126,9 @@ pub struct CachedStats {
     /// (part of `rays_shot`).
     pub uncached_samples: u64,
     pub uncached_rays: u64,
+    /// Shadow rays from gather hits and anchors to the punctual lights
+    /// ([`PhotonMap::shadow_rays_cast`]).
+    pub gather_shadow_rays: u64,
     /// The anchor method's statistics.
     pub anchors: Option<AnchorStats>,
 }
@@ -435,6 +438,7 @@ pub fn render_in_bands(
     st.final_gathering += share(2);
     st.irradiance_estimation += share(3);
     let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
+    st.gather_shadow_rays = pm.shadow_rays_cast();
     Ok((img, counts, st))
 }
 

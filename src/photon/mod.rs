@@ -27,6 +27,7 @@ pub mod precomputed;
 
 use std::f32::consts::PI;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::{Vec2, Vec3};
 use schemars::JsonSchema;
@@ -144,6 +145,38 @@ pub struct PhotonMap {
     /// light; without one there is nothing for shadow rays to stand in for, and the map is
     /// the one [`GatherDirect::Photons`] gives.
     pub direct: GatherDirect,
+    /// The shadow rays cast for [`PhotonMap::direct_at_hit`] and [`PhotonMap::direct_from`].
+    shadow_rays: Tally,
+}
+
+/// A count that the threads of a parallel loop add to, each in a cache line of its own, so
+/// that counting every gather hit's shadow rays costs no contention. The sum does not depend
+/// on which thread added what.
+struct Tally(Box<[PaddedCount]>);
+
+#[repr(align(128))]
+#[derive(Default)]
+struct PaddedCount(AtomicU64);
+
+impl Tally {
+    fn new() -> Tally {
+        Tally(
+            (0..=rayon::current_num_threads())
+                .map(|_| PaddedCount::default())
+                .collect(),
+        )
+    }
+
+    fn add(&self, n: u64) {
+        // A thread outside the pool (or of a larger pool) shares the last slot.
+        let last = self.0.len() - 1;
+        let i = rayon::current_thread_index().map_or(last, |i| i.min(last));
+        self.0[i].0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    fn sum(&self) -> u64 {
+        self.0.iter().map(|c| c.0.load(Ordering::Relaxed)).sum()
+    }
 }
 
 /// Half the thickness of the disc an estimate gathers over, as a fraction of its radius: a
@@ -495,6 +528,7 @@ impl PhotonMap {
             } else {
                 direct
             },
+            shadow_rays: Tally::new(),
         };
         if total <= 0.0 || count == 0 {
             return map;
@@ -603,7 +637,7 @@ impl PhotonMap {
     /// The punctual lights' irradiance by shadow rays from `o`, at a point with shading
     /// normal `ns` and geometric normal `ng`, counted by the shading normal as a photon
     /// arriving from each light would be (cos θ_s / cos θ_g, as the photons are stored).
-    /// The rays are not counted in the stats (`counts.shadow_rays`).
+    /// The rays count in [`PhotonMap::shadow_rays_cast`].
     fn direct_toward(&self, frame: &FrameScene, o: Vec3, ns: Vec3, ng: Vec3) -> Vec3 {
         let mut cast = 0;
         let mut shadow = ShadowRays::traced(&mut cast);
@@ -613,7 +647,16 @@ impl PhotonMap {
                 e += el * (ng.dot(wi) * shading_normal_factor(ng, ns, wi));
             }
         }
+        if cast > 0 {
+            self.shadow_rays.add(cast);
+        }
         e
+    }
+
+    /// The shadow rays cast so far from gather hits and anchors to the punctual lights
+    /// ([`GatherDirect::ShadowRays`]); none with the photons' estimate.
+    pub fn shadow_rays_cast(&self) -> u64 {
+        self.shadow_rays.sum()
     }
 
     /// Irradiance at `x` (normal `n`) from the `k` nearest photons whose surface normal

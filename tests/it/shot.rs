@@ -278,7 +278,8 @@ fn farm_templates_run_on_open_job_description() {
 /// With `method.gather_direct` `"shadow-rays"` (a point lamp added to the room, so that there
 /// is a punctual light for the shadow rays), the anchors' L_i hold the lamp's direct light
 /// from their own shadow rays: frames resumed from a checkpoint are byte for byte the full
-/// run's, and so are the frames of one and of two threads.
+/// run's, and so are the frames of one and of two threads, and their counts, the shadow rays
+/// of the gather hits and anchors among them (none by photons).
 #[test]
 fn shadow_rays_at_gather_hits_resume_and_thread_alike() {
     let d = tempdir();
@@ -312,6 +313,19 @@ fn shadow_rays_at_gather_hits_resume_and_thread_alike() {
     let o = render(&by_photons, "0-3", &photons, &[]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(exr(&full, 3) != exr(&photons, 3));
+    let counts = |dir: &Path, f: i32| {
+        let text = std::fs::read(dir.join(format!("room.{f:04}.json"))).unwrap();
+        serde_json::from_slice::<serde_json::Value>(&text).unwrap()["counts"].clone()
+    };
+    let one = d.path().join("one-thread");
+    let o = render(&job, "0-3", &one, &["--threads", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in 0..=3 {
+        let c = counts(&full, f);
+        assert_eq!(c, counts(&one, f), "frame {f}: counts of two threads and one");
+        assert!(c["gather_shadow_rays"].as_u64().unwrap() > 0, "frame {f}: {c}");
+        assert_eq!(counts(&photons, f)["gather_shadow_rays"], 0, "frame {f}");
+    }
     super::common::assert_same_bytes_with_1_and_2_threads(
         &job,
         &["--frames", "0-2"],
