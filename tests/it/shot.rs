@@ -322,8 +322,15 @@ fn shadow_rays_at_gather_hits_resume_and_thread_alike() {
     assert!(o.status.success(), "{}", stderr(&o));
     for f in 0..=3 {
         let c = counts(&full, f);
-        assert_eq!(c, counts(&one, f), "frame {f}: counts of two threads and one");
-        assert!(c["gather_shadow_rays"].as_u64().unwrap() > 0, "frame {f}: {c}");
+        assert_eq!(
+            c,
+            counts(&one, f),
+            "frame {f}: counts of two threads and one"
+        );
+        assert!(
+            c["gather_shadow_rays"].as_u64().unwrap() > 0,
+            "frame {f}: {c}"
+        );
         assert_eq!(counts(&photons, f)["gather_shadow_rays"], 0, "frame {f}");
     }
     super::common::assert_same_bytes_with_1_and_2_threads(
