@@ -54,12 +54,17 @@ fn main() {
     );
 }
 
-/// Every file under `dir`, as paths relative to `root`.
+/// Every file under `dir`, as paths relative to `root`, less hidden ones (an editor's swap
+/// files are not sources).
 fn collect(root: &Path, dir: &Path, out: &mut Vec<PathBuf>) {
     let entries =
         std::fs::read_dir(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()));
     for entry in entries {
-        let path = entry.expect("a directory entry").path();
+        let entry = entry.expect("a directory entry");
+        if entry.file_name().to_string_lossy().starts_with('.') {
+            continue;
+        }
+        let path = entry.path();
         if path.is_dir() {
             collect(root, &path, out);
         } else {
