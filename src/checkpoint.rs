@@ -9,8 +9,16 @@
 //! format                 u32 little-endian, FORMAT
 //! header                 postcard: anchorage's version and build, the job's content hash,
 //!                        the frame, the state's checksum
-//! state                  DEFLATE (zlib) of postcard: the FrameState
+//! state                  postcard of the FrameState, cut into chunks of CHUNK bytes (the
+//!                        last may be shorter), each compressed on its own:
+//!   raw length           u32 little-endian
+//!   compressed length    u32 little-endian
+//!   chunk                zlib (libdeflate, level 1)
 //! ```
+//!
+//! The chunks are compressed and decompressed in parallel: a state at the final preset
+//! holds hundreds of megabytes, and one zlib stream would compress it on one thread for
+//! about as long as the frame took to render.
 //!
 //! The magic and the format come first and fixed, so that a file of another format is named
 //! as such before anything else is decoded. A checkpoint is only read back by the anchorage
@@ -27,7 +35,7 @@
 //! and visibility overrides) and the bytes of every file the scene was read from, so a farm
 //! machine that mounts the shot at another path hashes the same. Files are written atomically ([`output::write_atomic`]).
 
-use std::io::{Read, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -46,7 +54,14 @@ pub const MAGIC: &[u8; 8] = b"ANCHSTAT";
 
 /// The checkpoint format this build writes and reads. A change to [`FrameState`]'s serde
 /// layout or to this file's layout increments it.
-pub const FORMAT: u32 = 7;
+pub const FORMAT: u32 = 8;
+
+/// Bytes of the encoded state per compressed chunk.
+const CHUNK: usize = 4 << 20;
+
+/// How many times a chunk's compressed length its raw length can be: DEFLATE's bound is
+/// 1 032:1. A chunk claiming more is damaged, and is refused before memory is given to it.
+const MAX_RATIO: u64 = 1032;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
 /// memory budget; a file beyond this is not one of ours.
@@ -105,27 +120,97 @@ pub fn state_path(dir: &Path, job: &Job, frame: i32) -> PathBuf {
 
 /// Writes `state`, taken after `frame` of the job hashed `job`, to `path` atomically.
 pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Result<()> {
-    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
-    z.write_all(&state.encode())
-        .and_then(|()| z.finish())
-        .map_err(|e| Error::Render(format!("cannot compress the state: {e}")))
-        .and_then(|body| {
-            let header = Header {
-                version: env!("CARGO_PKG_VERSION").to_string(),
-                build: BUILD.to_string(),
-                job,
-                frame,
-                body: *blake3::hash(&body).as_bytes(),
-            };
-            let head = postcard::to_stdvec(&header).expect("header serialises");
-            output::write_atomic(path, |w| {
-                let e = |e: std::io::Error| e.to_string();
-                w.write_all(MAGIC).map_err(e)?;
-                w.write_all(&FORMAT.to_le_bytes()).map_err(e)?;
-                w.write_all(&head).map_err(e)?;
-                w.write_all(&body).map_err(e)
-            })
+    let chunks = compress(&state.encode(), CHUNK);
+    let mut hash = blake3::Hasher::new();
+    for c in &chunks {
+        hash.update(c);
+    }
+    let header = Header {
+        version: env!("CARGO_PKG_VERSION").to_string(),
+        build: BUILD.to_string(),
+        job,
+        frame,
+        body: *hash.finalize().as_bytes(),
+    };
+    let head = postcard::to_stdvec(&header).expect("header serialises");
+    output::write_atomic(path, |w| {
+        let e = |e: std::io::Error| e.to_string();
+        w.write_all(MAGIC).map_err(e)?;
+        w.write_all(&FORMAT.to_le_bytes()).map_err(e)?;
+        w.write_all(&head).map_err(e)?;
+        chunks.iter().try_for_each(|c| w.write_all(c).map_err(e))
+    })
+}
+
+/// `raw` in chunks of `chunk` bytes (the last may be shorter), compressed in parallel, each
+/// with its lengths before it (module doc).
+fn compress(raw: &[u8], chunk: usize) -> Vec<Vec<u8>> {
+    use rayon::prelude::*;
+    raw.par_chunks(chunk)
+        .map(|part| {
+            let mut z = libdeflater::Compressor::new(
+                libdeflater::CompressionLvl::new(1).expect("level 1 is one of libdeflate's"),
+            );
+            let mut out = vec![0u8; 8 + z.zlib_compress_bound(part.len())];
+            let n = z
+                .zlib_compress(part, &mut out[8..])
+                .expect("the output holds the compression bound");
+            out[..4].copy_from_slice(&(part.len() as u32).to_le_bytes());
+            out[4..8].copy_from_slice(&(n as u32).to_le_bytes());
+            out.truncate(8 + n);
+            out
         })
+        .collect()
+}
+
+/// What [`compress`] made of bytes in chunks of `chunk`, decompressed in parallel; `Err`
+/// says how the chunks are damaged.
+fn decompress(mut body: &[u8], chunk: usize) -> std::result::Result<Vec<u8>, String> {
+    use rayon::prelude::*;
+    let mut chunks: Vec<(usize, &[u8])> = Vec::new();
+    while !body.is_empty() {
+        let word = |at: usize| {
+            body.get(at..at + 4)
+                .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")) as u64)
+                .ok_or_else(|| format!("chunk {} is cut short", chunks.len()))
+        };
+        let (raw, packed) = (word(0)?, word(4)?);
+        if raw == 0 || raw > chunk as u64 || raw > MAX_RATIO * packed {
+            return Err(format!(
+                "chunk {} claims {raw} bytes from {packed}",
+                chunks.len()
+            ));
+        }
+        let data = body
+            .get(8..8 + packed as usize)
+            .ok_or_else(|| format!("chunk {} is cut short", chunks.len()))?;
+        chunks.push((raw as usize, data));
+        body = &body[8 + packed as usize..];
+    }
+    // Every chunk but the last is whole, so each one's place in the state is known.
+    if let Some((i, _)) = chunks
+        .iter()
+        .enumerate()
+        .rev()
+        .skip(1)
+        .find(|(_, (raw, _))| *raw != chunk)
+    {
+        return Err(format!("chunk {i} is not the last and is short"));
+    }
+    let total = chunks.iter().map(|c| c.0).sum();
+    let mut state = vec![0u8; total];
+    state
+        .par_chunks_mut(chunk)
+        .zip(&chunks)
+        .enumerate()
+        .try_for_each(|(i, (out, &(_, data)))| {
+            match libdeflater::Decompressor::new().zlib_decompress(data, out) {
+                Ok(n) if n == out.len() => Ok(()),
+                Ok(n) => Err(format!("chunk {i} holds {n} bytes, not {}", out.len())),
+                Err(e) => Err(format!("chunk {i}: {e}")),
+            }
+        })?;
+    Ok(state)
 }
 
 /// Reads the checkpoint at `path` for the job hashed `job`, whose records have `strata`
@@ -172,10 +257,7 @@ pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameStat
             "is damaged: its state does not match its checksum".into()
         ));
     }
-    let mut body = Vec::new();
-    flate2::read::ZlibDecoder::new(rest)
-        .read_to_end(&mut body)
-        .map_err(|e| bad(format!("is damaged: {e}")))?;
+    let body = decompress(rest, CHUNK).map_err(|e| bad(format!("is damaged: {e}")))?;
     let state = FrameState::decode(&body).map_err(|e| bad(format!("is damaged: {e}")))?;
     state
         .check(strata)
@@ -226,6 +308,80 @@ mod tests {
         assert!(msg(read(&p, [7; 32], 64)).contains("not an anchorage checkpoint"));
     }
 
+    /// The state's chunks come back as they went in, in order, whatever the threads; a
+    /// chunk cut short, claiming more than a chunk, more than DEFLATE can expand to or
+    /// other bytes than it holds, or a short one before the last, is named as damaged.
+    #[test]
+    fn chunks_round_trip_and_damage_is_named() {
+        let raw: Vec<u8> = (0..1000u32)
+            .map(|i| (crate::sampling::hash(&[i / 3]) % 7) as u8)
+            .collect();
+        let chunks = compress(&raw, 64);
+        assert_eq!(chunks.len(), 16);
+        let body = chunks.concat();
+        assert_eq!(decompress(&body, 64).unwrap(), raw);
+        assert_eq!(
+            decompress(&compress(&raw[..64], 64).concat(), 64).unwrap(),
+            &raw[..64]
+        );
+        let damaged = |edit: &dyn Fn(&mut Vec<u8>)| {
+            let mut b = body.clone();
+            edit(&mut b);
+            decompress(&b, 64).unwrap_err()
+        };
+        assert!(damaged(&|b| b.truncate(b.len() - 1)).contains("cut short"));
+        assert!(damaged(&|b| b.truncate(b.len() - 9)).contains("cut short"));
+        assert!(damaged(&|b| b[0] = 65).contains("claims 65 bytes"));
+        assert!(damaged(&|b| b[4] = 0).contains("claims 64 bytes from 0"));
+        let packed = u32::from_le_bytes(body[4..8].try_into().unwrap()) as usize;
+        assert!(damaged(&|b| b[8 + packed / 2] ^= 0x55).contains("chunk 0"));
+        // The first chunk re-made from 63 bytes: a short chunk that is not the last.
+        let mut short = compress(&raw[..63], 64);
+        short.extend(compress(&raw[64..], 64));
+        assert!(
+            decompress(&short.concat(), 64)
+                .unwrap_err()
+                .contains("chunk 0 is not the last")
+        );
+    }
+
+    /// A record's strata survive the byte planes they are stored in; a byte string that is
+    /// not whole strata is refused.
+    #[test]
+    fn strata_are_stored_as_planes() {
+        use crate::anchor::AnchorId;
+        use crate::cache::Stratum;
+        use crate::cache::record::Record;
+        use glam::Vec3;
+
+        let strata: Vec<Stratum> = (0..7u32)
+            .map(|i| Stratum::new(Some(AnchorId(i * 40_000)), (i % 4) as u8, i as f32, 0.5))
+            .collect();
+        let record = Record {
+            strata,
+            ..Record::bare(Vec3::ZERO, Vec3::Y, 1.0)
+        };
+        let bytes = postcard::to_stdvec(&record).unwrap();
+        let back: Record = postcard::from_bytes(&bytes).unwrap();
+        assert_eq!(back.strata, record.strata);
+        // The first of the strata's bytes, planes apart: every link's low byte, then every
+        // link's second byte.
+        let planes = 7 * 6;
+        let at = bytes
+            .windows(planes)
+            .position(|w| w[..7] == [0, 64, 128, 192, 0, 64, 128])
+            .expect("the planes are in the encoding");
+        assert_eq!(
+            bytes[at - 1] as usize,
+            planes,
+            "one byte string, its length before it"
+        );
+        let mut cut = bytes.clone();
+        cut[at - 1] = planes as u8 - 1;
+        cut.remove(at + planes - 1);
+        assert!(postcard::from_bytes::<Record>(&cut).is_err());
+    }
+
     /// A state whose indices point outside itself (a file written by a faulty build, or
     /// edited) is refused on reading, naming what is wrong, before anything renders from it.
     #[test]
@@ -258,7 +414,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("s.state");
         write(&p, [7; 32], 4, &good).unwrap();
-        assert!(read(&p, [7; 32], 4).is_ok());
+        assert_eq!(read(&p, [7; 32], 4).unwrap(), (4, good.clone()));
 
         // The set's private fields, through its serialised form.
         fn edit_anchors(s: &mut FrameState, key: &str, value: serde_json::Value) {

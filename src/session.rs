@@ -21,9 +21,12 @@ pub struct FrameState {
 }
 
 impl FrameState {
-    /// The state as bytes (postcard's compact binary encoding of the serde types).
+    /// The state as bytes (postcard's compact binary encoding of the serde types), written
+    /// into one allocation the size of the state's heap, so that hundreds of megabytes are
+    /// not copied as the buffer grows.
     pub fn encode(&self) -> Vec<u8> {
-        postcard::to_stdvec(self).expect("frame state serialises: no map keys, no I/O")
+        let room = Vec::with_capacity(self.heap_bytes() + (1 << 16));
+        postcard::to_extend(self, room).expect("frame state serialises: no map keys, no I/O")
     }
 
     /// Bytes the state holds on the heap (an estimate from its lengths).

@@ -89,6 +89,69 @@ impl Stratum {
     }
 }
 
+/// A record's strata serialised as one byte string of their six bytes each, byte plane by
+/// byte plane (every stratum's first byte, then every second byte, ...): a checkpoint's
+/// strata are most of its bytes, and as planes they encode with a copy and compress well
+/// — the links' high bytes and the distances' exponents vary little across a hemisphere.
+mod strata_planes {
+    use serde::de::{Error, SeqAccess, Visitor};
+    use serde::{Deserializer, Serializer};
+
+    use super::Stratum;
+
+    const BYTES: usize = std::mem::size_of::<Stratum>();
+
+    pub fn serialize<S: Serializer>(strata: &[Stratum], s: S) -> Result<S::Ok, S::Error> {
+        let n = strata.len();
+        let mut planes = vec![0u8; n * BYTES];
+        for (i, st) in strata.iter().enumerate() {
+            for (w, word) in st.0.iter().enumerate() {
+                let [lo, hi] = word.to_le_bytes();
+                planes[2 * w * n + i] = lo;
+                planes[(2 * w + 1) * n + i] = hi;
+            }
+        }
+        s.serialize_bytes(&planes)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Stratum>, D::Error> {
+        d.deserialize_bytes(Planes)
+    }
+
+    struct Planes;
+
+    impl<'de> Visitor<'de> for Planes {
+        type Value = Vec<Stratum>;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "a byte string of {BYTES} planes of strata bytes")
+        }
+
+        fn visit_bytes<E: Error>(self, planes: &[u8]) -> Result<Vec<Stratum>, E> {
+            if !planes.len().is_multiple_of(BYTES) {
+                return Err(E::invalid_length(planes.len(), &self));
+            }
+            let n = planes.len() / BYTES;
+            let byte = |b: usize, i: usize| planes[b * n + i];
+            Ok((0..n)
+                .map(|i| {
+                    Stratum(std::array::from_fn(|w| {
+                        u16::from_le_bytes([byte(2 * w, i), byte(2 * w + 1, i)])
+                    }))
+                })
+                .collect())
+        }
+
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<Stratum>, A::Error> {
+            let mut planes = Vec::with_capacity(seq.size_hint().unwrap_or(0));
+            while let Some(b) = seq.next_element::<u8>()? {
+                planes.push(b);
+            }
+            self.visit_bytes(&planes)
+        }
+    }
+}
+
 /// "No anchor" in a stratum's 30-bit link.
 const NO_LINK: u32 = (1 << 30) - 1;
 
@@ -121,6 +184,7 @@ pub struct Record {
     /// the surface the record sits on.
     pub error: Vec3,
     pub ng: Vec3,
+    #[serde(with = "strata_planes")]
     pub strata: Vec<Stratum>,
     /// The incident radiance's direction, fitted to the strata (module
     /// [`super::directional`]): what lights glossy lobes read from the cache. `None` where
