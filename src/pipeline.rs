@@ -425,12 +425,13 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
                 b.inc(1);
             }
             None if opts.progress == Progress::Auto => eprintln!(
-                "anchorage: frame {frame} ({}/{}) {:.2} s, {} camera rays, {} shadow rays, {} gather rays, {} caches -> {}",
+                "anchorage: frame {frame} ({}/{}) {:.2} s, {} camera rays, {} shadow rays at camera hits, {} at gather hits and anchors, {} gather rays, {} caches -> {}",
                 i + 1,
                 frames.len(),
                 stats.timings_s.total,
                 stats.counts.camera_rays,
                 stats.counts.shadow_rays,
+                stats.counts.gather_shadow_rays,
                 stats.counts.rays_shot,
                 stats.counts.caches,
                 written.exr.display()
