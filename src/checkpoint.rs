@@ -59,8 +59,9 @@ pub const FORMAT: u32 = 8;
 /// Bytes of the encoded state per compressed chunk.
 const CHUNK: usize = 4 << 20;
 
-/// How many times a chunk's compressed length its raw length can be: DEFLATE's bound is
-/// 1 032:1. A chunk claiming more is damaged, and is refused before memory is given to it.
+/// The most a chunk can expand to, as a multiple of its compressed length: DEFLATE expands
+/// at most 1 032:1. A chunk that claims more is damaged, and is refused before memory is
+/// given to it.
 const MAX_RATIO: u64 = 1032;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
