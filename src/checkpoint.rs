@@ -13,12 +13,14 @@
 //!                        last may be shorter), each compressed on its own:
 //!   raw length           u32 little-endian
 //!   compressed length    u32 little-endian
-//!   chunk                zlib (libdeflate, level 1)
+//!   chunk                one Zstandard frame (level 1, with its content checksum)
 //! ```
 //!
 //! The chunks are compressed and decompressed in parallel: a state at the final preset
-//! holds hundreds of megabytes, and one zlib stream would compress it on one thread for
-//! about as long as the frame took to render.
+//! holds hundreds of megabytes, and one zlib stream compressed it on one thread for about
+//! half as long as the frame took to render. Zstandard at level 1 compresses Sponza's
+//! state at the final preset about three times as fast as libdeflate's zlib at level 1
+//! (0.25 against 0.71 s on two threads, 273 MB) into 3 % more bytes.
 //!
 //! The magic and the format come first and fixed, so that a file of another format is named
 //! as such before anything else is decoded. A checkpoint is only read back by the anchorage
@@ -59,10 +61,11 @@ pub const FORMAT: u32 = 8;
 /// Bytes of the encoded state per compressed chunk.
 const CHUNK: usize = 4 << 20;
 
-/// The most a chunk can expand to, as a multiple of its compressed length: DEFLATE expands
-/// at most 1 032:1. A chunk that claims more is damaged, and is refused before memory is
+/// The most a chunk can expand to, as a multiple of its compressed length: a Zstandard
+/// block holds at most 128 KiB and takes at least 4 bytes (an RLE block: its 3-byte header
+/// and the byte). A chunk that claims more is damaged, and is refused before memory is
 /// given to it.
-const MAX_RATIO: u64 = 1032;
+const MAX_RATIO: u64 = 32 << 10;
 
 /// The largest checkpoint read: a state holds the cache and the anchors, bounded by the
 /// memory budget; a file beyond this is not one of ours.
@@ -121,7 +124,12 @@ pub fn state_path(dir: &Path, job: &Job, frame: i32) -> PathBuf {
 
 /// Writes `state`, taken after `frame` of the job hashed `job`, to `path` atomically.
 pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Result<()> {
-    let chunks = compress(&state.encode(), CHUNK);
+    write_encoded(path, job, frame, &state.encode())
+}
+
+/// [`write`] for a state already encoded ([`FrameState::encode`]).
+fn write_encoded(path: &Path, job: [u8; 32], frame: i32, raw: &[u8]) -> Result<()> {
+    let chunks = compress(raw, CHUNK);
     let mut hash = blake3::Hasher::new();
     for c in &chunks {
         hash.update(c);
@@ -149,13 +157,14 @@ fn compress(raw: &[u8], chunk: usize) -> Vec<Vec<u8>> {
     use rayon::prelude::*;
     raw.par_chunks(chunk)
         .map(|part| {
-            let mut z = libdeflater::Compressor::new(
-                libdeflater::CompressionLvl::new(1).expect("level 1 is one of libdeflate's"),
-            );
-            let mut out = vec![0u8; 8 + z.zlib_compress_bound(part.len())];
-            let n = z
-                .zlib_compress(part, &mut out[8..])
-                .expect("the output holds the compression bound");
+            let mut out = vec![0u8; 8 + zstd::zstd_safe::compress_bound(part.len())];
+            let n = zstd::bulk::Compressor::new(1)
+                .and_then(|mut z| {
+                    // Each frame checks its own content (XXH64), as zlib's Adler-32 did.
+                    z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
+                    z.compress_to_buffer(part, &mut out[8..])
+                })
+                .expect("a level-1 compressor writes within the compression bound");
             out[..4].copy_from_slice(&(part.len() as u32).to_le_bytes());
             out[4..8].copy_from_slice(&(n as u32).to_le_bytes());
             out.truncate(8 + n);
@@ -205,7 +214,7 @@ fn decompress(mut body: &[u8], chunk: usize) -> std::result::Result<Vec<u8>, Str
         .zip(&chunks)
         .enumerate()
         .try_for_each(|(i, (out, &(_, data)))| {
-            match libdeflater::Decompressor::new().zlib_decompress(data, out) {
+            match zstd::bulk::decompress_to_buffer(data, out) {
                 Ok(n) if n == out.len() => Ok(()),
                 Ok(n) => Err(format!("chunk {i} holds {n} bytes, not {}", out.len())),
                 Err(e) => Err(format!("chunk {i}: {e}")),
@@ -383,10 +392,8 @@ mod tests {
         assert!(postcard::from_bytes::<Record>(&cut).is_err());
     }
 
-    /// A state whose indices point outside itself (a file written by a faulty build, or
-    /// edited) is refused on reading, naming what is wrong, before anything renders from it.
-    #[test]
-    fn an_inconsistent_state_is_refused() {
+    /// A state of one record of four strata, linking the second of two anchors.
+    fn small_state() -> FrameState {
         use crate::anchor::packed::Quantizer;
         use crate::anchor::{Anchor, AnchorId, AnchorSet};
         use crate::cache::Stratum;
@@ -409,9 +416,60 @@ mod tests {
             dominant_anchor: Some(AnchorId(1)),
             ..Record::bare(Vec3::ZERO, Vec3::Y, 1.0)
         };
-        let mut good = FrameState::default();
-        good.cache.records.push(record);
-        good.anchors = Some(set);
+        let mut state = FrameState::default();
+        state.cache.records.push(record);
+        state.anchors = Some(set);
+        state
+    }
+
+    /// A checkpoint whose encoded state was altered and then compressed and checksummed
+    /// anew (a file edited with care, or written by a faulty build) is read back whole or
+    /// refused as damaged or inconsistent, and never panics: every byte of the state in
+    /// turn set to four other values, and the state cut short at every length.
+    #[test]
+    fn an_altered_state_is_refused_or_read_never_panics() {
+        let raw = small_state().encode();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("s.state");
+        let (mut read_back, mut refused) = (0, 0);
+        let mut variants: Vec<Vec<u8>> = (0..raw.len()).map(|n| raw[..n].to_vec()).collect();
+        for i in 0..raw.len() {
+            for v in [0x00, 0xff, raw[i] ^ 0x01, raw[i].wrapping_add(0x80)] {
+                let mut bad = raw.clone();
+                bad[i] = v;
+                variants.push(bad);
+            }
+        }
+        for bad in &variants {
+            write_encoded(&p, [7; 32], 4, bad).unwrap();
+            match read(&p, [7; 32], 4) {
+                Ok((_, state)) => {
+                    assert!(state.check(4).is_ok());
+                    read_back += 1;
+                }
+                Err(e) => {
+                    let m = e.to_string();
+                    assert!(m.contains("damaged") || m.contains("inconsistent"), "{m}");
+                    refused += 1;
+                }
+            }
+        }
+        assert!(
+            refused > raw.len(),
+            "{refused} of {} refused",
+            variants.len()
+        );
+        assert!(read_back > 0, "no altered state read back");
+    }
+
+    /// A state whose indices point outside itself (a file written by a faulty build, or
+    /// edited) is refused on reading, naming what is wrong, before anything renders from it.
+    #[test]
+    fn an_inconsistent_state_is_refused() {
+        use crate::anchor::AnchorId;
+        use crate::cache::Stratum;
+
+        let good = small_state();
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("s.state");
         write(&p, [7; 32], 4, &good).unwrap();

@@ -143,7 +143,7 @@ mod strata_planes {
         }
 
         fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<Stratum>, A::Error> {
-            let mut planes = Vec::with_capacity(seq.size_hint().unwrap_or(0));
+            let mut planes = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(1 << 16));
             while let Some(b) = seq.next_element::<u8>()? {
                 planes.push(b);
             }
