@@ -206,14 +206,17 @@ pub fn render_in_bands(
             && l.fits(ctx.width, ctx.height, spp)
     });
     let t = Instant::now();
+    let emission = crate::photon::Emission {
+        count: params.photons,
+        seed: ctx.seed,
+        max_bounces: params.photon_bounces,
+        max_radius: params.max_photon_radius,
+        direct: params.gather_direct,
+    };
     let pm = PhotonMap::trace(
         ctx.scene,
         ctx.materials,
-        params.photons,
-        ctx.seed,
-        params.photon_bounces,
-        params.max_photon_radius,
-        params.gather_direct,
+        &emission,
         state.anchors.as_ref().map(|a| &a.previous_photons),
     );
     st.photon_tracing = t.elapsed().as_secs_f64();

@@ -471,26 +471,41 @@ pub fn sun_sphere(frame: &FrameScene) -> (Vec3, f32) {
     (c, (0.5 * (hi - lo).length()).max(f32::MIN_POSITIVE))
 }
 
+/// What a photon map is traced with ([`PhotonMap::trace`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Emission {
+    /// Photons emitted from all lights together.
+    pub count: u32,
+    /// Selects the photons' sequence; it must not depend on the frame, for temporal
+    /// coherence.
+    pub seed: u32,
+    /// Bounces a photon path takes at most.
+    pub max_bounces: u32,
+    /// Look-ups reach this fraction of the static geometry's bounding radius at most
+    /// ([`FrameScene::static_radius`]: the same in every frame).
+    pub max_radius: f32,
+    /// With [`GatherDirect::ShadowRays`] the first hit of each punctual light's photon counts
+    /// for nothing in the estimates.
+    pub direct: GatherDirect,
+}
+
 impl PhotonMap {
-    /// Traces `count` photons from every light of `frame`. `seed` selects the sequence;
-    /// it must not depend on the frame for temporal coherence. Look-ups reach
-    /// `max_radius` × the static geometry's bounding radius at most
-    /// ([`FrameScene::static_radius`]: the same in every frame). `previous` are the last
-    /// map's photons, if any: where every photon lies where its predecessor did, the map
-    /// uses their kd-tree ([`PhotonPaths::tree`]) instead of building one. With
-    /// [`GatherDirect::ShadowRays`] the first hit of each punctual light's photon counts for
-    /// nothing in the estimates.
-    #[allow(clippy::too_many_arguments)] // the map's settings, spelled out
+    /// Traces `e.count` photons from every light of `frame` (see [`Emission`]). `previous`
+    /// are the last map's photons, if any: where every photon lies where its predecessor
+    /// did, the map uses their kd-tree ([`PhotonPaths::tree`]) instead of building one.
     pub fn trace(
         frame: &FrameScene,
         m: Materials,
-        count: u32,
-        seed: u32,
-        max_bounces: u32,
-        max_radius: f32,
-        direct: GatherDirect,
+        e: &Emission,
         previous: Option<&PhotonPaths>,
     ) -> PhotonMap {
+        let Emission {
+            count,
+            seed,
+            max_bounces,
+            max_radius,
+            direct,
+        } = *e;
         let (centre, radius) = sun_sphere(frame);
         // Emitted flux per light.
         let mut sources = Vec::new();
@@ -1087,16 +1102,14 @@ mod tests {
             materials: &surfaces.materials,
             textures: &surfaces.textures,
         };
-        PhotonMap::trace(
-            &frame,
-            m,
-            photons,
-            3,
-            8,
-            0.05,
-            GatherDirect::Photons,
-            previous,
-        )
+        let e = Emission {
+            count: photons,
+            seed: 3,
+            max_bounces: 8,
+            max_radius: 0.05,
+            direct: GatherDirect::Photons,
+        };
+        PhotonMap::trace(&frame, m, &e, previous)
     }
 
     /// A map whose photons lie where the last map's did (the sun brighter) uses that map's

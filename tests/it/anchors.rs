@@ -62,11 +62,13 @@ fn frame_photons(
     let pm = anchorage::photon::PhotonMap::trace(
         &fs,
         m,
-        params.photons,
-        job.seed,
-        params.photon_bounces,
-        params.max_photon_radius,
-        params.gather_direct,
+        &anchorage::photon::Emission {
+            count: params.photons,
+            seed: job.seed,
+            max_bounces: params.photon_bounces,
+            max_radius: params.max_photon_radius,
+            direct: params.gather_direct,
+        },
         None,
     );
     (fs, pm)

@@ -201,11 +201,13 @@ fn photon_power_is_conserved() {
         let pm = PhotonMap::trace(
             &frame,
             m,
-            200_000,
-            7,
-            bounces,
-            1.0,
-            GatherDirect::Photons,
+            &anchorage::photon::Emission {
+                count: 200_000,
+                seed: 7,
+                max_bounces: bounces,
+                max_radius: 1.0,
+                direct: GatherDirect::Photons,
+            },
             None,
         );
         let emitted = pm.emitted_power.y as f64;

@@ -371,11 +371,13 @@ fn photons_pass_through_the_cut_out() {
     let map = PhotonMap::trace(
         &frame,
         materials(&scene),
-        200_000,
-        7,
-        0,
-        0.05,
-        GatherDirect::Photons,
+        &anchorage::photon::Emission {
+            count: 200_000,
+            seed: 7,
+            max_bounces: 0,
+            max_radius: 0.05,
+            direct: GatherDirect::Photons,
+        },
         None,
     );
     let first: Vec<Vec3> = map.path_start[..map.path_start.len() - 1]
@@ -721,11 +723,13 @@ fn photon_power_follows_the_emissive_texture() {
     let map = PhotonMap::trace(
         &frame,
         materials(&scene),
-        100_000,
-        3,
-        0,
-        0.05,
-        GatherDirect::Photons,
+        &anchorage::photon::Emission {
+            count: 100_000,
+            seed: 3,
+            max_bounces: 0,
+            max_radius: 0.05,
+            direct: GatherDirect::Photons,
+        },
         None,
     );
     let total = luminance(map.emitted_power);
