@@ -6,8 +6,8 @@
 //! per pixel the AOVs, the render's pixel accumulators and the EXR encoder's channel copies;
 //! per photon its record and its share of the kd-tree, for the longest expected paths; per
 //! cache record its strata, for records half as dense as the minimum spacing allows (real
-//! scenes place fewer); the scene's own
-//! geometry and textures as loaded.
+//! scenes place fewer); with checkpoints, the buffers a checkpoint holds while it is written
+//! or read; the scene's own geometry and textures as loaded.
 
 use std::path::Path;
 
@@ -24,6 +24,11 @@ const BYTES_PER_PIXEL: u64 = 100 + 112 + 216;
 const BYTES_PER_PHOTON: u64 = (36 + 24) * 6;
 /// Bytes per stratum of a cache record (`cache::record::Stratum`) with its anchor's share.
 const BYTES_PER_STRATUM: u64 = 6 + 4;
+/// Bytes per stratum a checkpoint holds beside the cache while it is written (the encoded
+/// state and its compressed chunks) or read (the file and the encoded state): measured on
+/// Sponza at the final preset, 7.7 and 5.0 bytes a stratum (273 and 176 MB for 35.4 M
+/// strata), with margin.
+const CHECKPOINT_BYTES_PER_STRATUM: u64 = 14;
 /// Bytes per triangle: its vertices (48) and shading record (80), and its share of the BVH
 /// with the traversal's copy of it (`accel::pairs`: 101 a triangle on Sponza).
 const BYTES_PER_TRIANGLE: u64 = 48 + 80 + 104;
@@ -34,20 +39,23 @@ pub struct Estimate {
     pub image: u64,
     pub photons: u64,
     pub cache: u64,
+    /// The buffers of a checkpoint being written or read (0 without checkpoints).
+    pub checkpoint: u64,
     pub scene: u64,
 }
 
 impl Estimate {
     pub fn total(&self) -> u64 {
-        self.image + self.photons + self.cache + self.scene
+        self.image + self.photons + self.cache + self.checkpoint + self.scene
     }
 
-    /// Estimates the peak memory of rendering `job` on `scene`.
-    pub fn of(job: &Job, scene: &Scene) -> Estimate {
+    /// Estimates the peak memory of rendering `job` on `scene`, writing or reading
+    /// checkpoints where `checkpoints` says so (`render --state-out` or `--resume`).
+    pub fn of(job: &Job, scene: &Scene, checkpoints: bool) -> Estimate {
         let pixels = u64::from(job.width) * u64::from(job.height);
         let p = job.method.params();
         let cached = !matches!(job.method.name, Method::Direct | Method::PathTrace);
-        let (photons, cache) = if cached {
+        let (photons, cache, checkpoint) = if cached {
             // Measured on Sponza (800×600, 2-pixel minimum spacing): 47.5 k records, one per
             // 10 pixels; half the densest grid the spacing allows is a bound with margin.
             let spacing = f64::from(p.cache.min_spacing_px.max(1.0));
@@ -56,9 +64,14 @@ impl Estimate {
             (
                 u64::from(p.photons) * BYTES_PER_PHOTON,
                 records * strata * BYTES_PER_STRATUM,
+                if checkpoints {
+                    records * strata * CHECKPOINT_BYTES_PER_STRATUM
+                } else {
+                    0
+                },
             )
         } else {
-            (0, 0)
+            (0, 0, 0)
         };
         // Every instance of a mesh is its own world-space copy.
         let triangles: u64 = scene
@@ -77,6 +90,7 @@ impl Estimate {
             image: pixels * BYTES_PER_PIXEL,
             photons,
             cache,
+            checkpoint,
             scene: triangles * BYTES_PER_TRIANGLE + texels,
         }
     }
@@ -87,6 +101,7 @@ impl Estimate {
             (self.image, "resolution"),
             (self.photons, "method.photons"),
             (self.cache, "method.strata"),
+            (self.checkpoint, "method.strata"),
             (self.scene, "scene"),
         ];
         parts
@@ -171,7 +186,17 @@ fn gib(b: u64) -> String {
 /// Checks the job's estimate against `limit` (the machine's share when `None` and it can be
 /// read); over it, an input error naming the job key behind the largest part.
 pub fn check(job: &Job, scene: &Scene, limit: Option<Limit>) -> Result<Estimate> {
-    let e = Estimate::of(job, scene);
+    check_with_checkpoints(job, scene, limit, false)
+}
+
+/// [`check`] for a render that writes or reads checkpoints where `checkpoints` says so.
+pub fn check_with_checkpoints(
+    job: &Job,
+    scene: &Scene,
+    limit: Option<Limit>,
+    checkpoints: bool,
+) -> Result<Estimate> {
+    let e = Estimate::of(job, scene, checkpoints);
     let Some(limit) = limit.or_else(Limit::of_machine) else {
         return Ok(e);
     };
@@ -185,7 +210,7 @@ pub fn check(job: &Job, scene: &Scene, limit: Option<Limit>) -> Result<Estimate>
             Path::new(&job.path),
             e.culprit(),
             format!(
-                "the render needs about {} (images {} at {}×{}, photons {}, cache {}, scene {}), \
+                "the render needs about {} (images {} at {}×{}, photons {}, cache {}{}, scene {}), \
                  more than the limit of {} ({whose})",
                 gib(e.total()),
                 gib(e.image),
@@ -193,6 +218,11 @@ pub fn check(job: &Job, scene: &Scene, limit: Option<Limit>) -> Result<Estimate>
                 job.height,
                 gib(e.photons),
                 gib(e.cache),
+                if e.checkpoint > 0 {
+                    format!(", checkpoints {}", gib(e.checkpoint))
+                } else {
+                    String::new()
+                },
                 gib(e.scene),
                 gib(limit.bytes),
             ),

@@ -275,7 +275,12 @@ fn run(cli: Cli) -> Result<(), Error> {
             for w in scene.warnings() {
                 eprintln!("anchorage: warning: {w}");
             }
-            anchorage::budget::check(&job, &scene, limit)?;
+            anchorage::budget::check_with_checkpoints(
+                &job,
+                &scene,
+                limit,
+                state_out.is_some() || resume.is_some(),
+            )?;
             let opts = RenderOptions {
                 preview,
                 progress: if quiet {

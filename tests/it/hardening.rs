@@ -206,6 +206,48 @@ fn limits_refuse_jobs_before_they_start() {
     refused(&["validate", "/dev/zero"], "not a regular file");
 }
 
+/// A render that writes or reads checkpoints needs memory for their buffers beside the
+/// cache: under a limit between the estimates without and with them, the render alone
+/// starts, and with `--state-out` or `--resume` it is refused before anything is written.
+#[test]
+fn checkpoints_count_in_the_memory_estimate() {
+    let dir = tempdir();
+    let src = example_job();
+    let job = anchorage::job::Job::load(&src, &Default::default()).unwrap();
+    let scene = job.load_scene().unwrap();
+    let plain = anchorage::budget::Estimate::of(&job, &scene, false);
+    let with = anchorage::budget::Estimate::of(&job, &scene, true);
+    assert_eq!(plain.checkpoint, 0);
+    assert!(with.checkpoint > with.cache, "{with:?}");
+    let limit = ((plain.total() + with.total()) / 2).to_string();
+    let out = dir.path().join("out");
+    let states = dir.path().join("states");
+    let args = |extra: &[&str]| -> Vec<String> {
+        let mut a: Vec<String> = ["render", src.to_str().unwrap(), "--frames", "0", "-q"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        a.extend(["--memory-limit".into(), limit.clone()]);
+        a.extend(["--out".into(), out.to_str().unwrap().into()]);
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    let run_with = |extra: &[&str]| {
+        let a = args(extra);
+        run(&a.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let o = run_with(&["--state-out", states.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("checkpoints"), "{}", stderr(&o));
+    assert!(
+        !out.exists() && !states.exists(),
+        "a refused render wrote output"
+    );
+    let o = run_with(&[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(out.join("room.0000.exr").exists());
+}
+
 /// The Vulkan probe says nothing on machines without a desktop session beyond anchorage's
 /// own line (render farms scrape logs for `error:`).
 #[test]
