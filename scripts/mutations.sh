@@ -51,6 +51,7 @@ declare -A TESTS=(
   [anchors-wide-with-shadow-rays]="photons::shadow_rays_at_gather"
   [checkpoint-build-unchecked]="shot::a_foreign_checkpoint"
   [gather-shadow-rays-uncounted]="shot::shadow_rays_at_gather_hits_resume"
+  [checkpoint-memory-uncounted]="hardening::checkpoints_count"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -60,7 +61,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   batch-anchors-not-in-tree untouched-test-short dynamic-radiance-misplaced
   references-one-share relink-first-found retry-takes-fewer integration-untimed
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
-  anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted)
+  anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
+  checkpoint-memory-uncounted)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
