@@ -87,9 +87,13 @@ def main():
         if args.reference_spp:
             for k in range(2):
                 j = json.loads(json.dumps(job))
-                j["method"] = {"name": "path-trace"}
+                preset = job.get("method", {}).get("preset", "production")
+                j["method"] = {
+                    "name": "path-trace",
+                    "preset": preset,
+                    "path_samples": max(args.reference_spp // 2, 1),
+                }
                 j["seed"] = job.get("seed", 1) + k
-                j.setdefault("render", {})["samples_per_pixel"] = max(args.reference_spp // 2, 1)
                 out = os.path.join(tmp, f"reference{k}")
                 j["output"] = dict(j.get("output", {}), directory=out)
                 path = os.path.join(tmp, f"reference{k}.json")
@@ -108,15 +112,18 @@ def main():
 
         ind = ["indirect.R", "indirect.G", "indirect.B"]
 
-        def error(label, f):
-            """The run's indirect RMS error beyond the reference's noise, % of its mean."""
+        def against_reference(f):
+            """Each run's indirect RMS error beyond the reference's noise, and that noise, as
+            percentages of the reference's mean."""
             r0, r1 = (read(os.path.join(refs[k], f"{name}.{f:04d}.exr"), ind) for k in range(2))
             ref = 0.5 * (r0 + r1)
             noise = np.mean((r0 - r1) ** 2) / 4.0
-            mse = np.mean((read(exr(label, f), ind) - ref) ** 2) - noise
-            return 100.0 * np.sign(mse) * np.sqrt(abs(mse)) / np.mean(np.abs(ref)), (
-                100.0 * np.sqrt(noise) / np.mean(np.abs(ref))
-            )
+            scale = 100.0 / np.mean(np.abs(ref))
+            runs = []
+            for label in ("on", "off"):
+                mse = np.mean((read(exr(label, f), ind) - ref) ** 2) - noise
+                runs.append(scale * np.sign(mse) * np.sqrt(abs(mse)))
+            return runs[0], runs[1], scale * np.sqrt(noise)
 
         print(f"{args.job}, frames {frames[0]}-{frames[-1]}, one worker thread per run")
         head = ("| frame | records (rule on) | records (off) | retired by the rule | "
@@ -148,7 +155,7 @@ def main():
                     f"{d_ind:.2f} | {d_b:.2f} |"
                 )
                 if refs:
-                    (e_on, noise), (e_off, _) = error("on", f), error("off", f)
+                    e_on, e_off, noise = against_reference(f)
                     errors.append((e_on, e_off))
                     line += f" {e_on:.2f} / {e_off:.2f} | {noise:.2f} |"
                 print(line)

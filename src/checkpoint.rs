@@ -129,7 +129,8 @@ pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Resu
 
 /// [`write`] for a state already encoded ([`FrameState::encode`]).
 fn write_encoded(path: &Path, job: [u8; 32], frame: i32, raw: &[u8]) -> Result<()> {
-    let chunks = compress(raw, CHUNK);
+    let chunks = compress(raw, CHUNK)
+        .map_err(|e| Error::Render(format!("cannot compress the state: {e}")))?;
     let mut hash = blake3::Hasher::new();
     for c in &chunks {
         hash.update(c);
@@ -152,23 +153,20 @@ fn write_encoded(path: &Path, job: [u8; 32], frame: i32, raw: &[u8]) -> Result<(
 }
 
 /// `raw` in chunks of `chunk` bytes (the last may be shorter), compressed in parallel, each
-/// with its lengths before it (module doc).
-fn compress(raw: &[u8], chunk: usize) -> Vec<Vec<u8>> {
+/// with its lengths before it (module doc); `Err` where Zstandard fails (out of memory).
+fn compress(raw: &[u8], chunk: usize) -> std::io::Result<Vec<Vec<u8>>> {
     use rayon::prelude::*;
     raw.par_chunks(chunk)
         .map(|part| {
             let mut out = vec![0u8; 8 + zstd::zstd_safe::compress_bound(part.len())];
-            let n = zstd::bulk::Compressor::new(1)
-                .and_then(|mut z| {
-                    // Each frame checks its own content (XXH64), as zlib's Adler-32 did.
-                    z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
-                    z.compress_to_buffer(part, &mut out[8..])
-                })
-                .expect("a level-1 compressor writes within the compression bound");
+            let mut z = zstd::bulk::Compressor::new(1)?;
+            // Each frame checks its own content (XXH64), as zlib's Adler-32 did.
+            z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
+            let n = z.compress_to_buffer(part, &mut out[8..])?;
             out[..4].copy_from_slice(&(part.len() as u32).to_le_bytes());
             out[4..8].copy_from_slice(&(n as u32).to_le_bytes());
             out.truncate(8 + n);
-            out
+            Ok(out)
         })
         .collect()
 }
@@ -326,12 +324,12 @@ mod tests {
         let raw: Vec<u8> = (0..1000u32)
             .map(|i| (crate::sampling::hash(&[i / 3]) % 7) as u8)
             .collect();
-        let chunks = compress(&raw, 64);
+        let chunks = compress(&raw, 64).unwrap();
         assert_eq!(chunks.len(), 16);
         let body = chunks.concat();
         assert_eq!(decompress(&body, 64).unwrap(), raw);
         assert_eq!(
-            decompress(&compress(&raw[..64], 64).concat(), 64).unwrap(),
+            decompress(&compress(&raw[..64], 64).unwrap().concat(), 64).unwrap(),
             &raw[..64]
         );
         let damaged = |edit: &dyn Fn(&mut Vec<u8>)| {
@@ -346,8 +344,8 @@ mod tests {
         let packed = u32::from_le_bytes(body[4..8].try_into().unwrap()) as usize;
         assert!(damaged(&|b| b[8 + packed / 2] ^= 0x55).contains("chunk 0"));
         // The first chunk re-made from 63 bytes: a short chunk that is not the last.
-        let mut short = compress(&raw[..63], 64);
-        short.extend(compress(&raw[64..], 64));
+        let mut short = compress(&raw[..63], 64).unwrap();
+        short.extend(compress(&raw[64..], 64).unwrap());
         assert!(
             decompress(&short.concat(), 64)
                 .unwrap_err()

@@ -69,7 +69,7 @@ pub struct Counts {
     pub shadow_rays: u64,
     /// Cached methods with `method.gather_direct` `shadow-rays`: the shadow rays cast from
     /// gather hits and anchors to the punctual lights (their time is irradiance
-    /// estimation's and attachment's, where new anchors are estimated). 0 by photons.
+    /// estimation's). 0 by photons.
     #[serde(default)]
     pub gather_shadow_rays: u64,
     /// Glossy reflection rays traced at camera hits (cached methods).

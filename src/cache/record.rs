@@ -94,9 +94,9 @@ impl Stratum {
 /// strata are most of its bytes, and as one string they encode with a copy, where varints
 /// took about 8.4 bytes a stratum; as planes, the bytes that vary little across a
 /// hemisphere (the links' high bytes, the distances' exponents) lie together for the
-/// compressor.
+/// compressor. Read back from a byte string only: checkpoints are postcard, which has one.
 mod strata_planes {
-    use serde::de::{Error, SeqAccess, Visitor};
+    use serde::de::{Error, Visitor};
     use serde::{Deserializer, Serializer};
 
     use super::Stratum;
@@ -142,14 +142,6 @@ mod strata_planes {
                     }))
                 })
                 .collect())
-        }
-
-        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<Stratum>, A::Error> {
-            let mut planes = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(1 << 16));
-            while let Some(b) = seq.next_element::<u8>()? {
-                planes.push(b);
-            }
-            self.visit_bytes(&planes)
         }
     }
 }
