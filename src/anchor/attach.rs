@@ -23,6 +23,12 @@
 //!    it links one already (§3.3.2: the first claim keeps it); the new anchors' L_i are
 //!    estimated in parallel.
 //!
+//! A batch too large to hold at once is gathered a part at a time
+//! ([`crate::cache::gather::PART_HITS`]) and attaches part by part between
+//! [`Attacher::begin`] and [`Attacher::end`] ([`Attacher::link_part`]): the searches of every
+//! part read the anchors as they were before the batch and step 2 runs on in hit order, so
+//! the anchors are those of the whole batch at once.
+//!
 //! One by one, a hit could also reuse an anchor that an earlier hit of its batch created
 //! or linked, where step 1 finds an older one first: the choice may differ, not its
 //! quality (every anchor chosen passes the same tests).
@@ -226,46 +232,78 @@ impl Attacher<'_> {
         hits: &[&SurfacePoint],
         share: usize,
     ) -> (Vec<AnchorId>, Vec<AnchorId>) {
-        let mut made = Made {
-            links: set.photon_links.clone(),
-            ids: Box::new(set.next_ids()),
-            anchors: Vec::new(),
-            place: HashMap::new(),
-            fresh: KdTree::default(),
-        };
-        let mut ids = Vec::with_capacity(hits.len());
-        let (mut searched, mut visited) = (0u64, 0u64);
-        {
-            let set = &*set;
-            let mut shares = hits.chunks(share.max(1));
-            let mut current = shares.next().map(|share| self.search_share(set, share));
-            while let Some(searches) = current {
-                let next = shares.next();
-                let step2 = || {
-                    for s in &searches {
-                        searched += u64::from(s.visited > 0);
-                        visited += u64::from(s.visited);
-                        let id = match &s.found {
-                            Ok(id) => *id,
-                            Err(search) => self.create(set, &mut made, search),
-                        };
-                        // Step 3: the first claim on a photon keeps it (§3.3.2).
-                        if let Some(ph) = s.photon.map(|ph| ph as usize)
-                            && made.links[ph].is_none()
-                        {
-                            made.links[ph] = Some(id);
-                        }
-                        ids.push(id);
-                    }
-                };
-                (current, ()) =
-                    rayon::join(|| next.map(|share| self.search_share(set, share)), step2);
-            }
+        let mut linking = self.begin(set);
+        let ids = self.link_part(set, &mut linking, hits, share);
+        (ids, self.end(set, linking))
+    }
+
+    /// A batch attached a part at a time ([`Attacher::link_part`]): what steps 2 and 3 have
+    /// made so far, kept apart from `set` until [`Attacher::end`].
+    pub fn begin(&self, set: &AnchorSet) -> Linking {
+        Linking {
+            made: Made {
+                links: set.photon_links.clone(),
+                ids: Box::new(set.next_ids()),
+                anchors: Vec::new(),
+                place: HashMap::new(),
+                fresh: KdTree::default(),
+            },
+            searched: 0,
+            visited: 0,
         }
-        set.tree.count(searched, visited);
-        set.photon_links = made.links;
-        let mut created = Vec::with_capacity(made.anchors.len());
-        for (id, anchor, reach2) in made.anchors {
+    }
+
+    /// [`Attacher::link_all_in_shares`] for the next part of a batch begun with
+    /// [`Attacher::begin`] (`set` as it was then): the anchor each of `hits` links to. The
+    /// parts together link as the whole batch would at once: every search reads the set as
+    /// it was before the batch, and step 2 goes on in hit order across the parts.
+    pub fn link_part(
+        &self,
+        set: &AnchorSet,
+        linking: &mut Linking,
+        hits: &[&SurfacePoint],
+        share: usize,
+    ) -> Vec<AnchorId> {
+        let Linking {
+            made,
+            searched,
+            visited,
+        } = linking;
+        let mut ids = Vec::with_capacity(hits.len());
+        let mut shares = hits.chunks(share.max(1));
+        let mut current = shares.next().map(|share| self.search_share(set, share));
+        while let Some(searches) = current {
+            let next = shares.next();
+            let step2 = || {
+                for s in &searches {
+                    *searched += u64::from(s.visited > 0);
+                    *visited += u64::from(s.visited);
+                    let id = match &s.found {
+                        Ok(id) => *id,
+                        Err(search) => self.create(set, made, search),
+                    };
+                    // Step 3: the first claim on a photon keeps it (§3.3.2).
+                    if let Some(ph) = s.photon.map(|ph| ph as usize)
+                        && made.links[ph].is_none()
+                    {
+                        made.links[ph] = Some(id);
+                    }
+                    ids.push(id);
+                }
+            };
+            (current, ()) = rayon::join(|| next.map(|share| self.search_share(set, share)), step2);
+        }
+        ids
+    }
+
+    /// Ends a batch begun with [`Attacher::begin`]: the anchors and photon links its parts
+    /// made go into `set`. Returns the anchors made, whose L_i
+    /// [`Attacher::estimate_created`] estimates.
+    pub fn end(&self, set: &mut AnchorSet, linking: Linking) -> Vec<AnchorId> {
+        set.tree.count(linking.searched, linking.visited);
+        set.photon_links = linking.made.links;
+        let mut created = Vec::with_capacity(linking.made.anchors.len());
+        for (id, anchor, reach2) in linking.made.anchors {
             let added = set.add(anchor);
             debug_assert_eq!(
                 added, id,
@@ -274,7 +312,7 @@ impl Attacher<'_> {
             set.set_reach(added, reach2);
             created.push(added);
         }
-        (ids, created)
+        created
     }
 
     /// Step 1 (module doc) for a share of a batch's hits. A hit's whole search is kept
@@ -344,6 +382,14 @@ struct Searched {
 
 /// What step 2 and the claims of step 3 change while a batch attaches (module doc), kept
 /// apart from the set until every share is searched.
+/// A batch of attachment under way ([`Attacher::begin`]).
+pub struct Linking {
+    made: Made,
+    /// Anchor-tree searches made and the nodes they visited (§3's rebalancing rule).
+    searched: u64,
+    visited: u64,
+}
+
 struct Made {
     /// The photons' links as the claims leave them (a copy of the set's).
     links: Vec<Option<AnchorId>>,

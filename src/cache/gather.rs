@@ -55,11 +55,43 @@ impl GatherHit {
     }
 }
 
-/// Turns one gather's hits into strata and their radiance: the method's part of a gather
-/// (brute force estimates every hit; anchors link static hits to anchors). Arguments: the
-/// records' footprints (distance units) and their hits, in record order.
-pub type Resolve<'a> =
-    dyn FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<(Vec<Stratum>, Vec<Vec3>)> + 'a;
+/// Each record's strata and the radiance each stratum brings, in the order of its strata.
+pub type Resolved = (Vec<Stratum>, Vec<Vec3>);
+
+/// Turns a gather's hits into strata and their radiance: the method's part of a gather
+/// (brute force estimates every hit; anchors link static hits to anchors). A batch of
+/// records is gathered a part at a time ([`PART_HITS`]), so that its hits (over a hundred
+/// bytes each) are held for one part only: [`Resolve::part`] for each part in record order,
+/// then [`Resolve::finish`] once for the whole batch.
+pub trait Resolve {
+    /// The strata of a part's records from their footprints (distance units) and their
+    /// hits, in record order; the radiance of a stratum may be left for
+    /// [`Resolve::finish`] (anchors: until the batch's new anchors are estimated).
+    fn part(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved>;
+
+    /// Completes the radiance of the whole batch's records, every part's in order.
+    fn finish(&mut self, resolved: &mut [Resolved]);
+}
+
+/// A resolver that finds every stratum's radiance in its part (brute force).
+impl<F: FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<Resolved>> Resolve for F {
+    fn part(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
+        self(footprints, hits)
+    }
+
+    fn finish(&mut self, _: &mut [Resolved]) {}
+}
+
+/// The most gather hits a part of a batch holds at once ([`Resolve`]): 2^21, some 235 MB of
+/// [`GatherHit`]s. Sponza's first frame at the final preset places up to 8 202 records of
+/// 1 800 strata in one round (14.8 M hits, 1.65 GB when held at once).
+pub const PART_HITS: usize = 1 << 21;
+
+/// The records of a batch that one part gathers: as many as [`PART_HITS`] allows at
+/// `strata` strata a record, at least one.
+pub fn part_records(strata: [u32; 2]) -> usize {
+    (PART_HITS / (strata[0] as usize * strata[1] as usize).max(1)).max(1)
+}
 
 /// The brute-force resolver: radiance at every hit from `radiance`, no links. The hits are
 /// estimated in the photon tree's spatial order ([`crate::photon::knn::query_order`]).
@@ -67,7 +99,7 @@ pub fn estimate_all(
     footprints: &[f32],
     hits: Vec<Vec<GatherHit>>,
     radiance: &(dyn Fn(&SurfacePoint) -> Vec3 + Sync),
-) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
+) -> Vec<Resolved> {
     let points: Vec<&SurfacePoint> = hits
         .iter()
         .flatten()

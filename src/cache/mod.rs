@@ -28,7 +28,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use clamp::Placed;
-pub use gather::{GatherHit, GatherTimings, Resolve};
+pub use gather::{GatherHit, GatherTimings, Resolve, Resolved};
 use grid::{REACH, RecordGrid};
 pub use record::{ENCLOSED_SHARE, HIT_BACK, HIT_DYNAMIC, Record, Stratum, finish_record};
 pub use removal::{Contribution, WeberTally};
@@ -126,6 +126,11 @@ pub struct IrradianceCache {
     /// The slope of neighbour clamping the radii were clamped with
     /// ([`IrradianceCache::set_params`]).
     neighbour_clamp: f32,
+    /// Records a part of a gather's batch traces at once (`None`: as many as
+    /// [`gather::PART_HITS`] hits allow; a batch is gathered and resolved a part at a time,
+    /// [`Resolve`]). The records do not depend on it, only the memory a batch holds:
+    /// neither serialised nor compared.
+    pub part_records: Option<usize>,
 }
 
 /// Bytes of the grid entries of one record: up to eight cells of each of the two grids
@@ -229,6 +234,7 @@ impl<'de> Deserialize<'de> for IrradianceCache {
             next_id: data.next_id,
             dynamic_hits: DynamicHits::default(),
             neighbour_clamp: data.neighbour_clamp,
+            part_records: None,
         };
         cache.grid.error = data.error;
         cache.rebuild_tree();
@@ -627,21 +633,21 @@ impl IrradianceCache {
         frame: &FrameScene,
         p: &CacheParams,
         frame_number: i32,
-        resolve: &mut Resolve,
+        resolve: &mut dyn Resolve,
         timings: &mut GatherTimings,
     ) {
-        let t0 = std::time::Instant::now();
-        let hits: Vec<Vec<GatherHit>> = self
-            .records
-            .par_iter()
-            .map(|r| gather::trace_strata(frame, &r.surface_point(), r.id, p))
-            .collect();
-        timings.final_gathering += t0.elapsed().as_secs_f64();
-        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
-        let t1 = std::time::Instant::now();
         let footprints: Vec<f32> = self.records.iter().map(|r| r.footprint).collect();
-        let resolved = resolve(&footprints, hits);
-        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        let records = &self.records;
+        let resolved = gather_in_parts(
+            frame,
+            p,
+            &footprints,
+            &|i| (records[i].surface_point(), records[i].id),
+            resolve,
+            timings,
+            self.part_records.unwrap_or(gather::part_records(p.strata)),
+            |_, _| {},
+        );
         let t2 = std::time::Instant::now();
         let updated: Vec<Record> = self
             .records
@@ -677,7 +683,7 @@ impl IrradianceCache {
         samples: &[(u32, SurfacePoint)],
         centres: &PixelCentres,
         spot: bool,
-        resolve: &mut Resolve,
+        resolve: &mut dyn Resolve,
         timings: &mut GatherTimings,
     ) {
         debug_assert_eq!(centres.size(), (width, height));
@@ -769,7 +775,7 @@ impl IrradianceCache {
         frame_number: i32,
         samples: &[(u32, SurfacePoint)],
         spot: bool,
-        resolve: &mut Resolve,
+        resolve: &mut dyn Resolve,
         timings: &mut GatherTimings,
         blocking: &mut Vec<u32>,
     ) {
@@ -847,7 +853,7 @@ impl IrradianceCache {
         p: &CacheParams,
         frame_number: i32,
         spot: bool,
-        resolve: &mut Resolve,
+        resolve: &mut dyn Resolve,
         timings: &mut GatherTimings,
     ) {
         if points.is_empty() {
@@ -855,27 +861,26 @@ impl IrradianceCache {
         }
         let first_id = self.next_id;
         self.next_id += points.len() as u32;
-        let t0 = std::time::Instant::now();
-        let hits: Vec<Vec<GatherHit>> = points
-            .par_iter()
-            .enumerate()
-            .map(|(i, (_, sp))| gather::trace_strata(frame, sp, first_id + i as u32, p))
-            .collect();
-        timings.final_gathering += t0.elapsed().as_secs_f64();
-        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
-        for (i, h) in hits.iter().enumerate() {
-            self.keep_dynamic_hits(
-                first_id + i as u32,
-                h.iter().enumerate().map(|(s, g)| (s as u32, g)),
-            );
-        }
-        let t1 = std::time::Instant::now();
         let footprints: Vec<f32> = points
             .iter()
             .map(|(_, sp)| pixel_footprint(&frame.camera, sp.position, height))
             .collect();
-        let resolved = resolve(&footprints, hits);
-        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+        let part = self.part_records.unwrap_or(gather::part_records(p.strata));
+        let resolved = gather_in_parts(
+            frame,
+            p,
+            &footprints,
+            &|i| (points[i].1, first_id + i as u32),
+            resolve,
+            timings,
+            part,
+            |i, h| {
+                self.keep_dynamic_hits(
+                    first_id + i as u32,
+                    h.iter().enumerate().map(|(s, g)| (s as u32, g)),
+                )
+            },
+        );
         let t2 = std::time::Instant::now();
         let records: Vec<Record> = points
             .par_iter()
@@ -955,6 +960,51 @@ impl IrradianceCache {
             self.records[i as usize].last_used = frame;
         }
     }
+}
+
+/// Gathers the records of a batch `part` at a time (at least one; [`gather::part_records`],
+/// so that at most [`gather::PART_HITS`] hits are held) and resolves each part as it is
+/// traced, then finishes the batch ([`Resolve`]): record `i` of the batch leaves from
+/// `origin(i)`'s surface point with that id, and `each(i, hits)` sees its hits once traced. The records' strata and
+/// radiance come out in order; tracing counts as final gathering, resolving as irradiance
+/// estimation.
+#[allow(clippy::too_many_arguments)] // the batch, its parts, and who resolves and sees them
+fn gather_in_parts(
+    frame: &FrameScene,
+    p: &CacheParams,
+    footprints: &[f32],
+    origin: &(dyn Fn(usize) -> (SurfacePoint, u32) + Sync),
+    resolve: &mut dyn Resolve,
+    timings: &mut GatherTimings,
+    part: usize,
+    mut each: impl FnMut(usize, &[GatherHit]),
+) -> Vec<Resolved> {
+    let n = footprints.len();
+    let part = part.max(1);
+    let mut resolved = Vec::with_capacity(n);
+    for start in (0..n).step_by(part) {
+        let end = (start + part).min(n);
+        let t0 = std::time::Instant::now();
+        let hits: Vec<Vec<GatherHit>> = (start..end)
+            .into_par_iter()
+            .map(|i| {
+                let (sp, id) = origin(i);
+                gather::trace_strata(frame, &sp, id, p)
+            })
+            .collect();
+        timings.final_gathering += t0.elapsed().as_secs_f64();
+        timings.rays += hits.iter().map(|h| h.len() as u64).sum::<u64>();
+        for (i, h) in (start..end).zip(&hits) {
+            each(i, h);
+        }
+        let t1 = std::time::Instant::now();
+        resolved.extend(resolve.part(&footprints[start..end], hits));
+        timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+    }
+    let t1 = std::time::Instant::now();
+    resolve.finish(&mut resolved);
+    timings.irradiance_estimation += t1.elapsed().as_secs_f64();
+    resolved
 }
 
 #[cfg(test)]
@@ -1047,6 +1097,78 @@ mod tests {
             quad(&mut g, a, b, cc, d);
         }
         frame_of(g, Vec3::new(3.0, 2.0, 3.0))
+    }
+
+    /// A batch is gathered a part at a time, each part resolved as it is traced and the batch
+    /// finished once ([`Resolve`]): the records' strata and radiance are those of one part,
+    /// whatever the part's size, and no part holds more records than it may.
+    #[test]
+    fn a_batch_gathers_the_same_in_parts_of_any_size() {
+        let frame = box_on_floor();
+        let p = CacheParams {
+            strata: [4, 8],
+            ..CacheParams::default()
+        };
+        let points: Vec<(SurfacePoint, u32)> = (0..9)
+            .map(|i| {
+                let o = Vec3::new(-3.0 + 0.7 * i as f32, 0.5, 1.3);
+                let sp = crate::interaction::trace(&frame, o, -Vec3::Y).unwrap();
+                (sp, 100 + i)
+            })
+            .collect();
+        let footprints = vec![0.1; points.len()];
+        // Brute force's estimate in each part; finishing doubles every radiance, so that a
+        // record the finish misses (or one finished twice) shows.
+        struct Counting {
+            parts: Vec<usize>,
+            finished: usize,
+        }
+        impl Resolve for Counting {
+            fn part(&mut self, fp: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
+                self.parts.push(hits.len());
+                let lit = |sp: &SurfacePoint| if sp.front { Vec3::ONE } else { Vec3::ZERO };
+                estimate_all(fp, hits, &lit)
+            }
+            fn finish(&mut self, resolved: &mut [Resolved]) {
+                self.finished += 1;
+                resolved
+                    .iter_mut()
+                    .flat_map(|r| r.1.iter_mut())
+                    .for_each(|r| *r *= 2.0);
+            }
+        }
+        let run = |part: usize| {
+            let mut r = Counting {
+                parts: Vec::new(),
+                finished: 0,
+            };
+            let mut t = GatherTimings::default();
+            let mut seen = Vec::new();
+            let out = gather_in_parts(
+                &frame,
+                &p,
+                &footprints,
+                &|i| points[i],
+                &mut r,
+                &mut t,
+                part,
+                |i, h| seen.push((i, h.len())),
+            );
+            (out, r, seen, t.rays)
+        };
+        let (whole, r, ..) = run(points.len());
+        assert_eq!((r.parts, r.finished), (vec![points.len()], 1));
+        assert!(whole.iter().any(|(_, rad)| rad.contains(&Vec3::splat(2.0))));
+        for part in [1, 2, 4] {
+            let (out, r, seen, rays) = run(part);
+            assert!(out == whole, "the records gathered {part} at a time");
+            assert!(r.parts.iter().all(|&n| n <= part), "parts of {:?}", r.parts);
+            assert_eq!(r.parts.iter().sum::<usize>(), points.len());
+            assert_eq!(r.finished, 1, "the batch finished once");
+            let each: Vec<_> = (0..points.len()).map(|i| (i, 32)).collect();
+            assert_eq!(seen, each, "every record's hits seen once, in order");
+            assert_eq!(rays, 32 * points.len() as u64);
+        }
     }
 
     /// Contact regions: a static record on a floor that a prim now stands on gathers from

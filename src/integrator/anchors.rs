@@ -25,10 +25,10 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::{FrameContext, GiParams};
-use crate::anchor::attach::Attacher;
+use crate::anchor::attach::{Attacher, Linking, SEARCH_SHARE};
 use crate::anchor::importons::Importons;
 use crate::anchor::{AnchorId, AnchorSet, Density, Quantizer};
-use crate::cache::gather::{self, GatherHit, GatherTimings};
+use crate::cache::gather::{self, GatherHit, GatherTimings, Resolve, Resolved};
 use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Stratum};
 use crate::color::luminance;
 use crate::geom::Motion;
@@ -55,21 +55,101 @@ pub struct AnchorStats {
     pub rebalanced: bool,
 }
 
-/// Resolves gather hits for the anchor method: dynamic hits by the photon map, static hits
-/// by attachment ([`Attacher::link_all`]: searched in parallel, new anchors made in record
-/// and stratum order). `previous` are the strata that re-shot hits replace: a re-shot ray
-/// that lands on static geometry at the distance it had before (its stratum was flagged, but
-/// nothing dynamic was in the way) keeps its anchor, as an unflagged stratum would;
-/// re-attaching it could pick another anchor and add flicker. Adds the seconds spent
-/// linking hits to anchors (searching and making them; [`Attacher::link_all`]) to `linking`.
-fn resolve(
+/// The anchor method's resolver ([`Resolve`]) for a batch of gather hits, a part at a
+/// time: dynamic hits by the photon map, static hits by attachment (searched in parallel,
+/// new anchors made in record and stratum order across the parts; [`Attacher::link_part`]),
+/// and once the batch is linked, its new anchors' L_i estimated and every linked stratum's
+/// radiance read from its anchor. Adds the seconds spent linking hits to anchors (searching
+/// and making them) to `seconds`.
+struct AnchorResolver<'a, 'b> {
+    att: &'a Attacher<'a>,
+    set: &'a mut AnchorSet,
+    /// The strata that re-shot hits replace (`None` for new records): a re-shot ray that
+    /// lands on static geometry at the distance it had before (its stratum was flagged, but
+    /// nothing dynamic was in the way) keeps its anchor, as an unflagged stratum would;
+    /// re-attaching it could pick another anchor and add flicker. By record of the batch.
+    previous: Option<&'a [Vec<Stratum>]>,
+    /// The batch's attachment so far (`None` before its first part and after it finishes).
+    linking: Option<Linking>,
+    /// Records of the batch resolved so far (where the next part's `previous` start).
+    done: usize,
+    seconds: &'b mut f64,
+}
+
+impl<'a, 'b> AnchorResolver<'a, 'b> {
+    fn new(
+        att: &'a Attacher<'a>,
+        set: &'a mut AnchorSet,
+        previous: Option<&'a [Vec<Stratum>]>,
+        seconds: &'b mut f64,
+    ) -> Self {
+        AnchorResolver {
+            att,
+            set,
+            previous,
+            linking: None,
+            done: 0,
+            seconds,
+        }
+    }
+
+    /// Resolves one batch as a single part.
+    fn all(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
+        let mut resolved = self.part(footprints, hits);
+        self.finish(&mut resolved);
+        resolved
+    }
+}
+
+impl Resolve for AnchorResolver<'_, '_> {
+    fn part(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
+        let att = self.att;
+        let previous = self.previous.map(|p| &p[self.done..self.done + hits.len()]);
+        self.done += hits.len();
+        let linking = self.linking.get_or_insert_with(|| att.begin(self.set));
+        resolve_part(
+            att,
+            self.set,
+            linking,
+            footprints,
+            hits,
+            previous,
+            self.seconds,
+        )
+    }
+
+    fn finish(&mut self, resolved: &mut [Resolved]) {
+        let t = Instant::now();
+        let created = match self.linking.take() {
+            Some(linking) => self.att.end(self.set, linking),
+            None => Vec::new(),
+        };
+        *self.seconds += t.elapsed().as_secs_f64();
+        self.done = 0;
+        self.att.estimate_created(self.set, &created);
+        let set = &*self.set;
+        resolved.par_iter_mut().for_each(|(strata, rad)| {
+            for (s, r) in strata.iter().zip(rad.iter_mut()) {
+                if let Some(id) = s.link() {
+                    *r = set.anchor(id).radiance();
+                }
+            }
+        });
+    }
+}
+
+/// [`AnchorResolver`]'s part: the strata of `hits`, each static hit linked to its anchor
+/// (the radiance of a linked stratum is left for [`Resolve::finish`]), each dynamic hit's
+/// radiance estimated.
+fn resolve_part(
     att: &Attacher,
-    set: &mut AnchorSet,
+    set: &AnchorSet,
+    linking: &mut Linking,
     footprints: &[f32],
     hits: Vec<Vec<GatherHit>>,
     previous: Option<&[Vec<Stratum>]>,
-    linking: &mut f64,
-) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
+    seconds: &mut f64,
+) -> Vec<Resolved> {
     // A batch holds up to millions of hits: every pass over them runs per record, in
     // parallel, and finds its place in the batch's flat lists (dynamic hits, attaching
     // hits) by its offsets there.
@@ -141,10 +221,8 @@ fn resolve(
         })
         .collect();
     let t = Instant::now();
-    let (attached, created) = att.link_all(set, &attaching);
-    *linking += t.elapsed().as_secs_f64();
-    att.estimate_created(set, &created);
-    let set = &*set;
+    let attached = att.link_part(set, linking, &attaching, SEARCH_SHARE);
+    *seconds += t.elapsed().as_secs_f64();
     hits.par_iter()
         .zip(&kept)
         .zip(&offsets)
@@ -168,7 +246,7 @@ fn resolve(
                             });
                             (
                                 Stratum::new(Some(id), g.flags(), g.distance, scale),
-                                set.anchor(id).radiance(),
+                                Vec3::ZERO,
                             )
                         }
                         None => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
@@ -635,7 +713,7 @@ fn update_records(
         .zip(todo)
         .map(|(r, list)| list.iter().map(|&s| r.strata[s as usize]).collect())
         .collect();
-    let resolved = resolve(att, set, &footprints, hits, Some(&previous), linking);
+    let resolved = AnchorResolver::new(att, set, Some(&previous), linking).all(&footprints, hits);
     // Each anchor's radiance, decoded once for the many strata that read it.
     let radiance: Vec<Vec3> = set.anchors.par_iter().map(|a| a.radiance()).collect();
     let with: Vec<_> = resolved.into_iter().zip(todo).collect();
@@ -681,8 +759,7 @@ fn place_records(
     let first_new = cache.len();
     let mut linking = 0.0;
     {
-        let mut resolver =
-            |fp: &[f32], hits: Vec<Vec<GatherHit>>| resolve(att, set, fp, hits, None, &mut linking);
+        let mut resolver = AnchorResolver::new(att, set, None, &mut linking);
         cache.place(
             ctx.scene,
             ctx.width,

@@ -369,6 +369,70 @@ fn a_batch_attaches_the_same_in_shares_of_any_size() {
     });
 }
 
+/// A batch of new records is gathered and resolved a part at a time, so that its hits are
+/// not all held at once (`IrradianceCache::part_records`): frames rendered with parts of two
+/// records are those rendered with each batch whole — the same images, records and anchors,
+/// for `anchors` (whose attachment runs on across the parts) and for brute force.
+#[test]
+fn gathering_a_batch_in_parts_changes_nothing() {
+    for method in ["anchors", "brute-force"] {
+        let job = example(method, "");
+        let run = |part: usize| {
+            let scene = job.load_scene().unwrap();
+            let resources = pipeline::new_resources(&job, &scene).unwrap();
+            let mut state = FrameState::default();
+            state.cache.part_records = Some(part);
+            let images: Vec<FrameImage> = (0..4)
+                .map(|f| {
+                    let mut st = pipeline::new_stats(&job, f);
+                    pipeline::render_frame(&job, &scene, &resources, &mut state, f, &mut st)
+                        .unwrap()
+                })
+                .collect();
+            (images, state)
+        };
+        let (whole, whole_state) = run(usize::MAX);
+        let (parts, parts_state) = run(2);
+        assert!(
+            whole_state.cache.len() > 8,
+            "{method}: several parts a batch"
+        );
+        assert!(
+            parts_state == whole_state,
+            "{method}: the records and anchors"
+        );
+        for (f, (a, b)) in whole.iter().zip(&parts).enumerate() {
+            assert!(
+                a.beauty == b.beauty && a.indirect == b.indirect,
+                "{method}: frame {f}'s image"
+            );
+        }
+    }
+}
+
+/// A batch gathered a part at a time attaches part by part ([`Attacher::link_part`]
+/// between [`Attacher::begin`] and [`Attacher::end`]): the anchors, links and tree it leaves
+/// are those of the whole batch at once, whatever the parts' size.
+#[test]
+fn a_batch_attaches_the_same_in_parts_of_any_size() {
+    with_example_batch(|att, set, hits| {
+        let mut whole = set.clone();
+        let (ids, created) = att.link_all(&mut whole, hits);
+        for part in [1, 97, hits.len() / 3] {
+            let mut parted = set.clone();
+            let mut linking = att.begin(&parted);
+            let mut got = Vec::new();
+            for p in hits.chunks(part) {
+                got.extend(att.link_part(&parted, &mut linking, p, 64));
+            }
+            let made = att.end(&mut parted, linking);
+            assert!(got == ids, "the hits' anchors, in parts of {part}");
+            assert!(made == created, "the anchors made, in parts of {part}");
+            assert!(parted == whole, "the anchor set, in parts of {part}");
+        }
+    });
+}
+
 /// A floor, a wall at x = 3 lit by a point light, and a dynamic plate that slides in between
 /// the floor and the wall (frames 8–12) and away again (from frame 16). The indirect light on
 /// the floor must drop while the plate blocks the wall and come back once it has gone, and
