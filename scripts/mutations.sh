@@ -52,6 +52,8 @@ declare -A TESTS=(
   [checkpoint-build-unchecked]="shot::a_foreign_checkpoint"
   [gather-shadow-rays-uncounted]="shot::shadow_rays_at_gather_hits_resume"
   [checkpoint-memory-uncounted]="hardening::checkpoints_count"
+  [parts-finished-each]="anchors::gathering_a_batch"
+  [parts-link-afresh]="anchors::gathering_a_batch"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -62,7 +64,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   references-one-share relink-first-found retry-takes-fewer integration-untimed
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
-  checkpoint-memory-uncounted)
+  checkpoint-memory-uncounted parts-finished-each parts-link-afresh)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
