@@ -5,9 +5,11 @@
 //! The estimate is an upper bound of the largest items, not an accounting of every byte:
 //! per pixel the AOVs, the render's pixel accumulators and the EXR encoder's channel copies;
 //! per photon its record and its share of the kd-tree, for the longest expected paths; per
-//! cache record its strata, for records half as dense as the minimum spacing allows (real
-//! scenes place fewer); with checkpoints, the buffers a checkpoint holds while it is written
-//! or read; the scene's own geometry and textures as loaded.
+//! cache record its strata, for records as dense as the minimum spacing allows (Sponza
+//! places 77–87 % of that); while a batch of records is gathered, the strata and radiance
+//! it resolves and the hits of one part of it ([`crate::cache::gather::PART_HITS`]); with
+//! checkpoints, the buffers a checkpoint holds while it is written or read; the scene's own
+//! geometry and textures as loaded.
 
 use std::path::Path;
 
@@ -24,6 +26,15 @@ const BYTES_PER_PIXEL: u64 = 100 + 112 + 216;
 const BYTES_PER_PHOTON: u64 = (36 + 24) * 6;
 /// Bytes per stratum of a cache record (`cache::record::Stratum`) with its anchor's share.
 const BYTES_PER_STRATUM: u64 = 6 + 4;
+/// Bytes per stratum of a batch of records being gathered: its stratum and radiance as the
+/// batch resolves them ([`crate::cache::Resolved`]), held until the batch's records are made.
+/// A frame's largest batch (the finest grid of its pixel centres) holds up to about half its
+/// new records (45–54 % on Sponza's first frame); counted here for all of them.
+const RESOLVED_BYTES_PER_STRATUM: u64 = 6 + 12;
+/// Bytes per hit of the part of a batch being gathered: the hit
+/// ([`crate::cache::GatherHit`]) and what resolving it holds beside (for `anchors`: the
+/// re-shot stratum's kept anchor, the attaching hits' list and their anchors, 24 bytes).
+const PART_BYTES_PER_HIT: u64 = size_of::<crate::cache::GatherHit>() as u64 + 24;
 /// Bytes per stratum a checkpoint holds beside the cache while it is written (the encoded
 /// state and its compressed chunks) or read (the file and the encoded state): measured on
 /// Sponza at the final preset, 7.7 and 5.0 bytes a stratum (273 and 176 MB for 35.4 M
@@ -39,6 +50,8 @@ pub struct Estimate {
     pub image: u64,
     pub photons: u64,
     pub cache: u64,
+    /// A batch of records being gathered: one part's hits and the batch's resolved strata.
+    pub gather: u64,
     /// The buffers of a checkpoint being written or read (0 without checkpoints).
     pub checkpoint: u64,
     pub scene: u64,
@@ -46,7 +59,7 @@ pub struct Estimate {
 
 impl Estimate {
     pub fn total(&self) -> u64 {
-        self.image + self.photons + self.cache + self.checkpoint + self.scene
+        self.image + self.photons + self.cache + self.gather + self.checkpoint + self.scene
     }
 
     /// Estimates the peak memory of rendering `job` on `scene`, writing or reading
@@ -55,15 +68,18 @@ impl Estimate {
         let pixels = u64::from(job.width) * u64::from(job.height);
         let p = job.method.params();
         let cached = !matches!(job.method.name, Method::Direct | Method::PathTrace);
-        let (photons, cache, checkpoint) = if cached {
-            // Measured on Sponza (800×600, 2-pixel minimum spacing): 47.5 k records, one per
-            // 10 pixels; half the densest grid the spacing allows is a bound with margin.
+        let (photons, cache, gather, checkpoint) = if cached {
+            // One record per square of the minimum spacing: Sponza places 77 % of that at
+            // the final preset (1.5 pixels; 18 050 records at 320×180) and 87 % at
+            // production (2 pixels; 12 511).
             let spacing = f64::from(p.cache.min_spacing_px.max(1.0));
-            let records = (pixels as f64 / (2.0 * spacing * spacing)).ceil() as u64;
+            let records = (pixels as f64 / (spacing * spacing)).ceil() as u64;
             let strata = u64::from(p.cache.strata[0]) * u64::from(p.cache.strata[1]);
+            let part = (crate::cache::gather::part_records(p.cache.strata) as u64).min(records);
             (
                 u64::from(p.photons) * BYTES_PER_PHOTON,
                 records * strata * BYTES_PER_STRATUM,
+                records * strata * RESOLVED_BYTES_PER_STRATUM + part * strata * PART_BYTES_PER_HIT,
                 if checkpoints {
                     records * strata * CHECKPOINT_BYTES_PER_STRATUM
                 } else {
@@ -71,7 +87,7 @@ impl Estimate {
                 },
             )
         } else {
-            (0, 0, 0)
+            (0, 0, 0, 0)
         };
         // Every instance of a mesh is its own world-space copy.
         let triangles: u64 = scene
@@ -90,6 +106,7 @@ impl Estimate {
             image: pixels * BYTES_PER_PIXEL,
             photons,
             cache,
+            gather,
             checkpoint,
             scene: triangles * BYTES_PER_TRIANGLE + texels,
         }
@@ -101,6 +118,7 @@ impl Estimate {
             (self.image, "resolution"),
             (self.photons, "method.photons"),
             (self.cache, "method.strata"),
+            (self.gather, "method.strata"),
             (self.checkpoint, "method.strata"),
             (self.scene, "scene"),
         ];
@@ -210,14 +228,15 @@ pub fn check_with_checkpoints(
             Path::new(&job.path),
             e.culprit(),
             format!(
-                "the render needs about {} (images {} at {}×{}, photons {}, cache {}{}, scene {}), \
-                 more than the limit of {} ({whose})",
+                "the render needs about {} (images {} at {}×{}, photons {}, cache {}, gathering {}{}, \
+                 scene {}), more than the limit of {} ({whose})",
                 gib(e.total()),
                 gib(e.image),
                 job.width,
                 job.height,
                 gib(e.photons),
                 gib(e.cache),
+                gib(e.gather),
                 if e.checkpoint > 0 {
                     format!(", checkpoints {}", gib(e.checkpoint))
                 } else {

@@ -206,6 +206,39 @@ fn limits_refuse_jobs_before_they_start() {
     refused(&["validate", "/dev/zero"], "not a regular file");
 }
 
+/// While a batch of new records is gathered, a render holds the strata and radiance the
+/// batch resolves and the hits of one part of it (`cache::gather::PART_HITS`; before, the
+/// whole batch's hits, 112 bytes each: 1.65 GB in one batch of Sponza's first frame at the
+/// final preset, five times the estimate then): the memory estimate counts both, and the
+/// part's share stays the same at any resolution.
+#[test]
+fn gathering_counts_in_the_memory_estimate() {
+    let estimate = |resolution: &str| {
+        let job = job_from_json(
+            &example_job(),
+            &format!(
+                r#"{{"scene":[{{"path":"room.gltf"}}],"resolution":{resolution},
+                "frames":{{"start":0,"end":4}},"method":{{"name":"anchors","preset":"final"}}}}"#
+            ),
+        )
+        .unwrap();
+        let scene = job.load_scene().unwrap();
+        anchorage::budget::Estimate::of(&job, &scene, false)
+    };
+    let (hd, uhd) = (estimate("[1920,1080]"), estimate("[3840,2160]"));
+    // The cache counts 10 bytes a stratum; the batch's resolved strata 18 more.
+    let part = |e: &anchorage::budget::Estimate| e.gather.saturating_sub(e.cache / 10 * 18);
+    for e in [&hd, &uhd] {
+        assert!(e.gather >= e.cache / 10 * 18, "the resolved strata: {e:?}");
+        let hits = anchorage::cache::gather::PART_HITS as u64;
+        assert!(
+            part(e) >= hits * 112 && part(e) <= hits * 200,
+            "one part's hits: {e:?}"
+        );
+    }
+    assert_eq!(part(&hd), part(&uhd), "the part at twice the resolution");
+}
+
 /// A render that writes or reads checkpoints needs memory for their buffers beside the
 /// cache: under a limit between the estimates without and with them, the render alone
 /// starts, and with `--state-out` or `--resume` it is refused before anything is written.
