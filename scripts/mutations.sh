@@ -54,6 +54,7 @@ declare -A TESTS=(
   [checkpoint-memory-uncounted]="hardening::checkpoints_count"
   [parts-finished-each]="anchors::gathering_a_batch"
   [parts-link-afresh]="anchors::gathering_a_batch"
+  [gather-estimate-unparted]="hardening::gathering_counts"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -64,7 +65,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   references-one-share relink-first-found retry-takes-fewer integration-untimed
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
-  checkpoint-memory-uncounted parts-finished-each parts-link-afresh)
+  checkpoint-memory-uncounted parts-finished-each parts-link-afresh
+  gather-estimate-unparted)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
