@@ -380,8 +380,6 @@ struct Searched {
     found: Result<AnchorId, Box<Search>>,
 }
 
-/// What step 2 and the claims of step 3 change while a batch attaches (module doc), kept
-/// apart from the set until every share is searched.
 /// A batch of attachment under way ([`Attacher::begin`]).
 pub struct Linking {
     made: Made,
@@ -390,6 +388,8 @@ pub struct Linking {
     visited: u64,
 }
 
+/// What step 2 and the claims of step 3 change while a batch attaches (module doc), kept
+/// apart from the set until every share of every part is searched.
 struct Made {
     /// The photons' links as the claims leave them (a copy of the set's).
     links: Vec<Option<AnchorId>>,
