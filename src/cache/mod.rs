@@ -965,9 +965,9 @@ impl IrradianceCache {
 /// Gathers the records of a batch `part` at a time (at least one; [`gather::part_records`],
 /// so that at most [`gather::PART_HITS`] hits are held) and resolves each part as it is
 /// traced, then finishes the batch ([`Resolve`]): record `i` of the batch leaves from
-/// `origin(i)`'s surface point with that id, and `each(i, hits)` sees its hits once traced. The records' strata and
-/// radiance come out in order; tracing counts as final gathering, resolving as irradiance
-/// estimation.
+/// `origin(i)`'s surface point with that id, and `each(i, hits)` sees its hits once traced.
+/// The records' strata and radiance come out in order; tracing counts as final gathering,
+/// resolving as irradiance estimation.
 #[allow(clippy::too_many_arguments)] // the batch, its parts, and who resolves and sees them
 fn gather_in_parts(
     frame: &FrameScene,
