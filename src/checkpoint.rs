@@ -316,9 +316,9 @@ mod tests {
         assert!(msg(read(&p, [7; 32], 64)).contains("not an anchorage checkpoint"));
     }
 
-    /// The state's chunks come back as they went in, in order, whatever the threads; a
-    /// chunk cut short, claiming more than a chunk, more than DEFLATE can expand to or
-    /// other bytes than it holds, or a short one before the last, is named as damaged.
+    /// The state's chunks come back as they went in, in order; a chunk cut short, claiming
+    /// more than a chunk, more than Zstandard can expand to or other bytes than it holds,
+    /// or a short one before the last, is named as damaged.
     #[test]
     fn chunks_round_trip_and_damage_is_named() {
         let raw: Vec<u8> = (0..1000u32)
