@@ -38,8 +38,9 @@ pub struct SurfacePoint {
     pub ns: Vec3,
     /// `TEXCOORD_0` at the hit.
     pub uv: Vec2,
-    /// Linear RGBA vertex colour (`COLOR_0`) at the hit; white without one.
-    pub color: Vec4,
+    /// Linear RGBA vertex colour (`COLOR_0`) at the hit; white without one. (An array, not
+    /// a `Vec4`: a `Vec4` would align the point to 16 bytes, and the gather holds millions.)
+    pub color: [f32; 4],
     /// Per-component bound on the error of `position` (pbrt-v4 §6.8.5): rays leave from
     /// beyond it ([`Self::spawn`]).
     pub error: Vec3,
@@ -99,7 +100,7 @@ impl SurfacePoint {
             ng,
             ns,
             uv,
-            color,
+            color: color.to_array(),
             error: hp.error,
             material: sh.material,
             front,
@@ -137,7 +138,7 @@ impl SurfacePoint {
 
     /// The BRDF here ([`crate::bsdf`]).
     pub fn bsdf(&self, m: Materials) -> Bsdf {
-        m.materials[self.material as usize].bsdf(self.uv, self.color, m.textures)
+        m.materials[self.material as usize].bsdf(self.uv, Vec4::from_array(self.color), m.textures)
     }
 
     /// The normal the BRDF is evaluated about for light leaving towards `wo`: the shading

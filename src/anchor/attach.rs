@@ -394,7 +394,7 @@ struct Made {
     /// The photons' links as the claims leave them (a copy of the set's).
     links: Vec<Option<AnchorId>>,
     /// The ids [`AnchorSet::add`] will give the anchors made, in order.
-    ids: Box<dyn Iterator<Item = AnchorId> + Send>,
+    ids: Box<dyn Iterator<Item = AnchorId> + Send + Sync>,
     /// The anchors made, in order: id, anchor, and the squared reach its L_i is searched
     /// within first.
     anchors: Vec<(AnchorId, Anchor, f32)>,
@@ -431,6 +431,12 @@ impl AttachPoint {
 /// share's search. (Shares of an eighth of the batch, for more of step 2 beside the
 /// searches, made Sponza's frame 1 slower: the searches lose locality.)
 pub const SEARCH_SHARE: usize = 1 << 18;
+
+/// Bytes step 1 holds for a share of hits while it is searched ([`SEARCH_SHARE`]): each
+/// hit's [`AttachPoint`], its position and its [`Searched`]; two shares are held at once
+/// (one searched beside the last one's step 2), 44 MB.
+pub const SHARE_BYTES: usize =
+    SEARCH_SHARE * (size_of::<AttachPoint>() + size_of::<Vec3>() + size_of::<Searched>());
 
 /// What step 1 (module doc) found for one hit.
 struct Search {

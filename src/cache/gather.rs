@@ -5,36 +5,34 @@
 use glam::Vec3;
 
 use super::directional::stratum_direction;
-use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Stratum};
+use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Record, Stratum};
 use crate::accel::Hit;
 use crate::geom::{Motion, basis};
 use crate::interaction::SurfacePoint;
 use crate::sampling::Sampler;
 use crate::scene::FrameScene;
 
-/// Where a gather ray went, before its radiance is estimated.
+/// Where a gather ray went, before its radiance is estimated: the surface point it met
+/// (`None`: a miss). A batch holds millions of these, one part at a time ([`PART_HITS`]).
 #[derive(Debug, Clone, Copy)]
 pub struct GatherHit {
     pub sp: Option<SurfacePoint>,
-    pub distance: f32,
 }
 
 impl GatherHit {
     /// A ray that leaves below the surface or meets nothing.
-    pub const MISS: GatherHit = GatherHit {
-        sp: None,
-        distance: f32::INFINITY,
-    };
+    pub const MISS: GatherHit = GatherHit { sp: None };
 
     /// The gather hit of the ray from `o` along `dir` that met `hit` (`None`: a miss).
     fn new(frame: &FrameScene, hit: Option<Hit>, o: Vec3, dir: Vec3) -> GatherHit {
-        match hit {
-            Some(h) => GatherHit {
-                sp: Some(SurfacePoint::new(frame, h, o, dir)),
-                distance: h.t,
-            },
-            None => GatherHit::MISS,
+        GatherHit {
+            sp: hit.map(|h| SurfacePoint::new(frame, h, o, dir)),
         }
+    }
+
+    /// How far the ray went to its hit (infinity for a miss).
+    pub fn distance(&self) -> f32 {
+        self.sp.as_ref().map_or(f32::INFINITY, |sp| sp.hit.t)
     }
 
     /// The stratum flags of the hit: [`HIT_DYNAMIC`] for a dynamic prim, [`HIT_BACK`] for
@@ -55,26 +53,43 @@ impl GatherHit {
     }
 }
 
-/// Each record's strata and the radiance each stratum brings, in the order of its strata.
+/// Each record's strata and the radiance the resolver keeps for them, in the order of its
+/// strata: every stratum's (brute force), or only that of the strata that link no anchor
+/// (`anchors`: a linked stratum's radiance is its anchor's, read when the record is made,
+/// [`Resolve::radiance`]).
 pub type Resolved = (Vec<Stratum>, Vec<Vec3>);
 
 /// Turns a gather's hits into strata and their radiance: the method's part of a gather
 /// (brute force estimates every hit; anchors link static hits to anchors). A batch of
 /// records is gathered a part at a time ([`PART_HITS`]), so that its hits (over a hundred
 /// bytes each) are held for one part only: [`Resolve::part`] for each part in record order,
-/// then [`Resolve::finish`] once for the whole batch.
-pub trait Resolve {
+/// then [`Resolve::finish`] once for the whole batch, then [`Resolve::radiance`] for each
+/// record as it is made, so that every stratum's radiance is held for one record at a time.
+pub trait Resolve: Sync {
     /// The strata of a part's records from their footprints (distance units) and their
-    /// hits, in record order; the radiance of a stratum may be left for
-    /// [`Resolve::finish`] (anchors: until the batch's new anchors are estimated).
+    /// hits, in record order, with the radiance the resolver keeps ([`Resolved`]).
     fn part(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved>;
 
-    /// Completes the radiance of the whole batch's records, every part's in order.
+    /// Completes the whole batch once every part is resolved (anchors: the new anchors
+    /// made and their L_i estimated).
     fn finish(&mut self, resolved: &mut [Resolved]);
+
+    /// The radiance of each of a finished record's `strata` from what [`Resolve::part`] and
+    /// [`Resolve::finish`] kept (`kept`): by default, `kept` itself.
+    fn radiance(&self, strata: &[Stratum], kept: Vec<Vec3>) -> Vec<Vec3> {
+        let _ = strata;
+        kept
+    }
+
+    /// What the method adds to a record made from a finished batch, from its strata's
+    /// `radiance` (anchors: its dominant anchor); by default nothing.
+    fn made(&self, record: &mut Record, radiance: &[Vec3]) {
+        let _ = (record, radiance);
+    }
 }
 
 /// A resolver that finds every stratum's radiance in its part (brute force).
-impl<F: FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<Resolved>> Resolve for F {
+impl<F: FnMut(&[f32], Vec<Vec<GatherHit>>) -> Vec<Resolved> + Sync> Resolve for F {
     fn part(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
         self(footprints, hits)
     }
@@ -113,7 +128,7 @@ pub fn estimate_all(
         .map(|(h, &scale)| {
             let strata = h
                 .iter()
-                .map(|g| Stratum::new(None, g.flags(), g.distance, scale))
+                .map(|g| Stratum::new(None, g.flags(), g.distance(), scale))
                 .collect();
             let rad = h
                 .iter()

@@ -649,11 +649,15 @@ impl IrradianceCache {
             |_, _| {},
         );
         let t2 = std::time::Instant::now();
+        let resolve: &dyn Resolve = resolve;
         let updated: Vec<Record> = self
             .records
             .par_iter()
             .zip(resolved)
-            .map(|(r, (strata, rad))| r.with_strata(strata, &rad, p, frame_number))
+            .map(|(r, (strata, kept))| {
+                let rad = resolve.radiance(&strata, kept);
+                r.with_strata(strata, &rad, p, frame_number)
+            })
             .collect();
         timings.integration += t2.elapsed().as_secs_f64();
         self.records = updated;
@@ -882,12 +886,14 @@ impl IrradianceCache {
             },
         );
         let t2 = std::time::Instant::now();
+        let resolve: &dyn Resolve = resolve;
         let records: Vec<Record> = points
             .par_iter()
             .zip(resolved)
             .enumerate()
-            .map(|(i, ((_, sp), (strata, rad)))| {
-                finish_record(
+            .map(|(i, ((_, sp), (strata, kept)))| {
+                let rad = resolve.radiance(&strata, kept);
+                let mut record = finish_record(
                     sp,
                     sp.hit.motion,
                     first_id + i as u32,
@@ -897,7 +903,9 @@ impl IrradianceCache {
                     p,
                     frame_number,
                     spot,
-                )
+                );
+                resolve.made(&mut record, &rad);
+                record
             })
             .collect();
         timings.integration += t2.elapsed().as_secs_f64();
@@ -966,8 +974,8 @@ impl IrradianceCache {
 /// so that at most [`gather::PART_HITS`] hits are held) and resolves each part as it is
 /// traced, then finishes the batch ([`Resolve`]): record `i` of the batch leaves from
 /// `origin(i)`'s surface point with that id, and `each(i, hits)` sees its hits once traced.
-/// The records' strata and radiance come out in order; tracing counts as final gathering,
-/// resolving as irradiance estimation.
+/// The records' strata and the radiance the resolver keeps come out in order
+/// ([`Resolved`]); tracing counts as final gathering, resolving as irradiance estimation.
 #[allow(clippy::too_many_arguments)] // the batch, its parts, and who resolves and sees them
 fn gather_in_parts(
     frame: &FrameScene,

@@ -367,7 +367,7 @@ impl Record {
             ng: self.ng,
             ns: self.normal,
             uv: glam::Vec2::ZERO,
-            color: glam::Vec4::ONE,
+            color: [1.0; 4],
             error: self.error,
             material: 0,
             front: true,

@@ -29,7 +29,7 @@ use crate::anchor::attach::{Attacher, Linking, SEARCH_SHARE};
 use crate::anchor::importons::Importons;
 use crate::anchor::{AnchorId, AnchorSet, Density, Quantizer};
 use crate::cache::gather::{self, GatherHit, GatherTimings, Resolve, Resolved};
-use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Stratum};
+use crate::cache::{CacheParams, HIT_DYNAMIC, IrradianceCache, Record, Stratum};
 use crate::color::luminance;
 use crate::geom::Motion;
 use crate::interaction::{PixelCentres, SurfacePoint};
@@ -58,9 +58,11 @@ pub struct AnchorStats {
 /// The anchor method's resolver ([`Resolve`]) for a batch of gather hits, a part at a
 /// time: dynamic hits by the photon map, static hits by attachment (searched in parallel,
 /// new anchors made in record and stratum order across the parts; [`Attacher::link_part`]),
-/// and once the batch is linked, its new anchors' L_i estimated and every linked stratum's
-/// radiance read from its anchor. Adds the seconds spent linking hits to anchors (searching
-/// and making them) to `seconds`.
+/// and once the batch is linked, its new anchors' L_i estimated. It keeps the radiance of
+/// the strata whose rays met a dynamic prim only; a linked stratum's is read from its anchor
+/// as its record is made ([`Resolve::radiance`]) and a miss's is zero, so that a batch holds
+/// about 6 bytes a stratum, not 18.
+/// Adds the seconds spent linking hits to anchors (searching and making them) to `seconds`.
 struct AnchorResolver<'a, 'b> {
     att: &'a Attacher<'a>,
     set: &'a mut AnchorSet,
@@ -93,11 +95,22 @@ impl<'a, 'b> AnchorResolver<'a, 'b> {
         }
     }
 
-    /// Resolves one batch as a single part.
-    fn all(&mut self, footprints: &[f32], hits: Vec<Vec<GatherHit>>) -> Vec<Resolved> {
+    /// Resolves one batch as a single part: each record's strata and every stratum's
+    /// radiance.
+    fn all(
+        &mut self,
+        footprints: &[f32],
+        hits: Vec<Vec<GatherHit>>,
+    ) -> Vec<(Vec<Stratum>, Vec<Vec3>)> {
         let mut resolved = self.part(footprints, hits);
         self.finish(&mut resolved);
         resolved
+            .into_iter()
+            .map(|(strata, kept)| {
+                let rad = self.radiance(&strata, kept);
+                (strata, rad)
+            })
+            .collect()
     }
 }
 
@@ -118,7 +131,7 @@ impl Resolve for AnchorResolver<'_, '_> {
         )
     }
 
-    fn finish(&mut self, resolved: &mut [Resolved]) {
+    fn finish(&mut self, _: &mut [Resolved]) {
         let t = Instant::now();
         let created = match self.linking.take() {
             Some(linking) => self.att.end(self.set, linking),
@@ -127,20 +140,39 @@ impl Resolve for AnchorResolver<'_, '_> {
         *self.seconds += t.elapsed().as_secs_f64();
         self.done = 0;
         self.att.estimate_created(self.set, &created);
-        let set = &*self.set;
-        resolved.par_iter_mut().for_each(|(strata, rad)| {
-            for (s, r) in strata.iter().zip(rad.iter_mut()) {
-                if let Some(id) = s.link() {
-                    *r = set.anchor(id).radiance();
-                }
-            }
-        });
+    }
+
+    fn radiance(&self, strata: &[Stratum], kept: Vec<Vec3>) -> Vec<Vec3> {
+        linked_radiance(strata, &kept, |id| self.set.anchor(id).radiance())
+    }
+
+    fn made(&self, record: &mut Record, radiance: &[Vec3]) {
+        record.dominant_anchor = dominant(&record.strata, radiance);
     }
 }
 
-/// [`AnchorResolver`]'s part: the strata of `hits`, each static hit linked to its anchor
-/// (the radiance of a linked stratum is left for [`Resolve::finish`]), each dynamic hit's
-/// radiance estimated.
+/// The radiance of each of `strata`: a linked stratum's from its anchor (`anchor`), that
+/// of a stratum whose ray met a dynamic prim in turn from `dynamic` ([`AnchorResolver`]
+/// keeps theirs only), zero for the others (misses).
+fn linked_radiance(
+    strata: &[Stratum],
+    dynamic: &[Vec3],
+    anchor: impl Fn(AnchorId) -> Vec3,
+) -> Vec<Vec3> {
+    let mut dynamic = dynamic.iter();
+    strata
+        .iter()
+        .map(|s| match s.link() {
+            Some(id) => anchor(id),
+            None if s.flags() & HIT_DYNAMIC != 0 => dynamic.next().copied().unwrap_or(Vec3::ZERO),
+            None => Vec3::ZERO,
+        })
+        .collect()
+}
+
+/// [`AnchorResolver`]'s part: the strata of `hits`, each static hit linked to its anchor,
+/// each dynamic hit's radiance estimated; the radiance kept is that of the dynamic hits, in
+/// order (a linked stratum's is its anchor's, once the batch is finished; a miss's zero).
 fn resolve_part(
     att: &Attacher,
     set: &AnchorSet,
@@ -166,7 +198,7 @@ fn resolve_part(
                         .map(|p| p[ri][si])
                         .filter(|old| {
                             old.flags() & HIT_DYNAMIC == 0
-                                && Stratum::new(None, 0, h[si].distance, scale).distance(scale)
+                                && Stratum::new(None, 0, h[si].distance(), scale).distance(scale)
                                     == old.distance(scale)
                         })
                         .and_then(|old| old.link())
@@ -231,30 +263,26 @@ fn resolve_part(
             |(ri, ((h, kept), &(mut next_dynamic, mut next_attached)))| {
                 let scale = footprints[ri];
                 let mut strata = Vec::with_capacity(h.len());
-                let mut rad = Vec::with_capacity(h.len());
+                let mut at_dynamic = Vec::new();
                 for (g, k) in h.iter().zip(kept) {
-                    let (stratum, radiance) = match &g.sp {
+                    let stratum = match &g.sp {
                         Some(sp) if sp.hit.motion == Motion::Dynamic => {
-                            let radiance = dynamic[next_dynamic];
+                            at_dynamic.push(dynamic[next_dynamic]);
                             next_dynamic += 1;
-                            (Stratum::new(None, g.flags(), g.distance, scale), radiance)
+                            Stratum::new(None, g.flags(), g.distance(), scale)
                         }
                         Some(_) => {
                             let id = k.unwrap_or_else(|| {
                                 next_attached += 1;
                                 attached[next_attached - 1]
                             });
-                            (
-                                Stratum::new(Some(id), g.flags(), g.distance, scale),
-                                Vec3::ZERO,
-                            )
+                            Stratum::new(Some(id), g.flags(), g.distance(), scale)
                         }
-                        None => (Stratum::new(None, 0, f32::INFINITY, scale), Vec3::ZERO),
+                        None => Stratum::new(None, 0, f32::INFINITY, scale),
                     };
                     strata.push(stratum);
-                    rad.push(radiance);
                 }
-                (strata, rad)
+                (strata, at_dynamic)
             },
         )
         .collect()
@@ -744,7 +772,8 @@ fn update_records(
 }
 
 /// New records where the image needs them (at the camera samples' lookup `samples` too;
-/// the pixel centres' hits in `centres`); all their strata attach.
+/// the pixel centres' hits in `centres`); all their strata attach, and each record takes its
+/// dominant anchor as it is made ([`Resolve::made`]).
 #[allow(clippy::too_many_arguments)] // the frame, its anchors and cache, where to look
 fn place_records(
     ctx: &FrameContext,
@@ -756,7 +785,6 @@ fn place_records(
     centres: &PixelCentres,
     timings: &mut GatherTimings,
 ) {
-    let first_new = cache.len();
     let mut linking = 0.0;
     {
         let mut resolver = AnchorResolver::new(att, set, None, &mut linking);
@@ -774,17 +802,6 @@ fn place_records(
         );
     }
     timings.linked(linking);
-    let t = Instant::now();
-    let set = &*set;
-    cache.records[first_new..].par_iter_mut().for_each(|r| {
-        let rad: Vec<Vec3> = r
-            .strata
-            .iter()
-            .map(|s| s.link().map_or(Vec3::ZERO, |a| set.anchor(a).radiance()))
-            .collect();
-        r.dominant_anchor = dominant(&r.strata, &rad);
-    });
-    timings.integration += t.elapsed().as_secs_f64();
 }
 
 /// The radiance each stratum reads from its anchor (zero where it links none), from each
@@ -807,7 +824,7 @@ fn anchor_references(set: &AnchorSet, cache: &IrradianceCache) -> Vec<u32> {
     let n = set.anchors.len();
     let shares = rayon::current_num_threads().clamp(1, REFERENCE_SHARES);
     let share = cache.records.len().div_ceil(shares).max(1);
-    let count = |records: &[crate::cache::Record]| {
+    let count = |records: &[Record]| {
         let mut refs = vec![0u32; n];
         for s in records.iter().flat_map(|r| &r.strata) {
             if let Some(a) = s.link() {

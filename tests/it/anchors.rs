@@ -575,7 +575,7 @@ fn every_stratum_holds_what_its_ray_hits_now() {
         let rays = gather::StratumRays::new(&r.surface_point(), r.id, &cp);
         for (s, old) in r.strata.iter().enumerate() {
             let g = rays.trace(&fs, s as u32);
-            let now = Stratum::new(None, g.flags(), g.distance, r.footprint);
+            let now = Stratum::new(None, g.flags(), g.distance(), r.footprint);
             let linked = old.link().is_some();
             let static_hit = g.sp.is_some() && g.flags() & HIT_DYNAMIC == 0;
             strata += 1;
