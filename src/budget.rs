@@ -7,7 +7,8 @@
 //! per photon its record and its share of the kd-tree, for the longest expected paths; per
 //! cache record its strata, for records as dense as the minimum spacing allows (Sponza
 //! places 48–87 % of that); while a batch of records is gathered, the strata and radiance
-//! it resolves and the hits of one part of it ([`crate::cache::gather::PART_HITS`]); with
+//! it resolves (`anchors`: the strata alone) and the hits of one part of it
+//! ([`crate::cache::gather::PART_HITS`]) with what resolving them holds; with
 //! checkpoints, the buffers a checkpoint holds while it is written or read; the scene's own
 //! geometry and textures as loaded.
 
@@ -31,10 +32,17 @@ const BYTES_PER_STRATUM: u64 = 6 + 4;
 /// A frame's largest batch (the finest grid of its pixel centres) holds up to about half its
 /// new records (45–54 % on Sponza's first frame); counted here for all of them.
 const RESOLVED_BYTES_PER_STRATUM: u64 = 6 + 12;
+/// [`RESOLVED_BYTES_PER_STRATUM`] for `anchors`, which keeps the stratum alone: a linked
+/// stratum's radiance is its anchor's, read as its record is made, and only the few strata
+/// whose rays met a dynamic prim keep theirs.
+const ANCHOR_RESOLVED_BYTES_PER_STRATUM: u64 = 6;
 /// Bytes per hit of the part of a batch being gathered: the hit
 /// ([`crate::cache::GatherHit`]) and what resolving it holds beside (for `anchors`: the
 /// re-shot stratum's kept anchor, the attaching hits' list and their anchors, 24 bytes).
 const PART_BYTES_PER_HIT: u64 = size_of::<crate::cache::GatherHit>() as u64 + 24;
+/// What `anchors` holds beside a part while its hits attach: two shares of the search
+/// ([`crate::anchor::attach::SHARE_BYTES`]).
+const ANCHOR_SEARCH_BYTES: u64 = 2 * crate::anchor::attach::SHARE_BYTES as u64;
 /// Bytes per stratum a checkpoint holds beside the cache while it is written (the encoded
 /// state and its compressed chunks) or read (the file and the encoded state): measured on
 /// Sponza at the final preset, 7.7 and 5.0 bytes a stratum (273 and 176 MB for 35.4 M
@@ -76,10 +84,14 @@ impl Estimate {
             let records = (pixels as f64 / (spacing * spacing)).ceil() as u64;
             let strata = u64::from(p.cache.strata[0]) * u64::from(p.cache.strata[1]);
             let part = (crate::cache::gather::part_records(p.cache.strata) as u64).min(records);
+            let (resolved, search) = match job.method.name {
+                Method::Anchors => (ANCHOR_RESOLVED_BYTES_PER_STRATUM, ANCHOR_SEARCH_BYTES),
+                _ => (RESOLVED_BYTES_PER_STRATUM, 0),
+            };
             (
                 u64::from(p.photons) * BYTES_PER_PHOTON,
                 records * strata * BYTES_PER_STRATUM,
-                records * strata * RESOLVED_BYTES_PER_STRATUM + part * strata * PART_BYTES_PER_HIT,
+                records * strata * resolved + part * strata * PART_BYTES_PER_HIT + search,
                 if checkpoints {
                     records * strata * CHECKPOINT_BYTES_PER_STRATUM
                 } else {

@@ -210,33 +210,53 @@ fn limits_refuse_jobs_before_they_start() {
 /// batch resolves and the hits of one part of it (`cache::gather::PART_HITS`; before, the
 /// whole batch's hits, 112 bytes each: 1.65 GB in one batch of Sponza's first frame at the
 /// final preset, five times the estimate then): the memory estimate counts both, and the
-/// part's share stays the same at any resolution.
+/// part's share stays the same at any resolution. `anchors` keeps a batch's strata alone
+/// (6 bytes each, their radiance read from their anchors as the records are made), and the
+/// shares of its search beside the part; brute force keeps every stratum's radiance too.
 #[test]
 fn gathering_counts_in_the_memory_estimate() {
-    let estimate = |resolution: &str| {
+    let estimate = |method: &str, resolution: &str| {
         let job = job_from_json(
             &example_job(),
             &format!(
                 r#"{{"scene":[{{"path":"room.gltf"}}],"resolution":{resolution},
-                "frames":{{"start":0,"end":4}},"method":{{"name":"anchors","preset":"final"}}}}"#
+                "frames":{{"start":0,"end":4}},"method":{{"name":"{method}","preset":"final"}}}}"#
             ),
         )
         .unwrap();
         let scene = job.load_scene().unwrap();
         anchorage::budget::Estimate::of(&job, &scene, false)
     };
-    let (hd, uhd) = (estimate("[1920,1080]"), estimate("[3840,2160]"));
-    // The cache counts 10 bytes a stratum; the batch's resolved strata 18 more.
-    let part = |e: &anchorage::budget::Estimate| e.gather.saturating_sub(e.cache / 10 * 18);
-    for e in [&hd, &uhd] {
-        assert!(e.gather >= e.cache / 10 * 18, "the resolved strata: {e:?}");
-        let hits = anchorage::cache::gather::PART_HITS as u64;
-        assert!(
-            part(e) >= hits * 112 && part(e) <= hits * 200,
-            "one part's hits: {e:?}"
+    let hits = anchorage::cache::gather::PART_HITS as u64;
+    let hit = size_of::<anchorage::cache::GatherHit>() as u64;
+    let search = 2 * anchorage::anchor::attach::SHARE_BYTES as u64;
+    // The cache counts 10 bytes a stratum; the batch's resolved strata 6 more (anchors) or
+    // 18 (brute force), then one part's hits and what resolving them holds.
+    for (method, resolved, beside) in [("anchors", 6, search), ("brute-force", 18, 0)] {
+        let part = |e: &anchorage::budget::Estimate| {
+            e.gather.saturating_sub(e.cache / 10 * resolved + beside)
+        };
+        let (hd, uhd) = (
+            estimate(method, "[1920,1080]"),
+            estimate(method, "[3840,2160]"),
+        );
+        for e in [&hd, &uhd] {
+            assert!(
+                e.gather >= e.cache / 10 * resolved + beside,
+                "{method}: the resolved strata: {e:?}"
+            );
+            assert!(
+                part(e) >= hits * hit && part(e) <= hits * (hit + 32),
+                "{method}: one part's hits: {e:?}"
+            );
+        }
+        assert_eq!(
+            part(&hd),
+            part(&uhd),
+            "{method}: the part at twice the resolution"
         );
     }
-    assert_eq!(part(&hd), part(&uhd), "the part at twice the resolution");
+    assert!(hit <= 92, "a gather hit takes {hit} bytes");
 }
 
 /// A render that writes or reads checkpoints needs memory for their buffers beside the
