@@ -55,6 +55,8 @@ declare -A TESTS=(
   [parts-finished-each]="anchors::gathering_a_batch"
   [parts-link-afresh]="anchors::gathering_a_batch"
   [gather-estimate-unparted]="hardening::gathering_counts"
+  [dynamic-radiance-dropped]="anchor_faults anchors::"
+  [gather-search-uncounted]="hardening::gathering_counts"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -66,7 +68,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
-  gather-estimate-unparted)
+  gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
