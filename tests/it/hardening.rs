@@ -210,9 +210,9 @@ fn limits_refuse_jobs_before_they_start() {
 /// batch resolves and the hits of one part of it (`cache::gather::PART_HITS`; before, the
 /// whole batch's hits, 112 bytes each: 1.65 GB in one batch of Sponza's first frame at the
 /// final preset, five times the estimate then): the memory estimate counts both, and the
-/// part's share stays the same at any resolution. `anchors` keeps a batch's strata alone
-/// (6 bytes each, their radiance read from their anchors as the records are made), and the
-/// shares of its search beside the part; brute force keeps every stratum's radiance too.
+/// part's share stays the same at any resolution. Brute force keeps every stratum's
+/// radiance; `anchors` keeps a batch's strata alone (6 bytes each, their radiance read from
+/// their anchors as the records are made) and holds the shares of its search beside a part.
 #[test]
 fn gathering_counts_in_the_memory_estimate() {
     let estimate = |method: &str, resolution: &str| {
@@ -230,30 +230,26 @@ fn gathering_counts_in_the_memory_estimate() {
     let hits = anchorage::cache::gather::PART_HITS as u64;
     let hit = size_of::<anchorage::cache::GatherHit>() as u64;
     let search = 2 * anchorage::anchor::attach::SHARE_BYTES as u64;
-    // The cache counts 10 bytes a stratum; the batch's resolved strata 6 more (anchors) or
-    // 18 (brute force), then one part's hits and what resolving them holds.
-    for (method, resolved, beside) in [("anchors", 6, search), ("brute-force", 18, 0)] {
-        let part = |e: &anchorage::budget::Estimate| {
-            e.gather.saturating_sub(e.cache / 10 * resolved + beside)
-        };
-        let (hd, uhd) = (
-            estimate(method, "[1920,1080]"),
-            estimate(method, "[3840,2160]"),
+    // The cache counts 10 bytes a stratum; brute force's batch 18 more for its resolved
+    // strata, then one part's hits and what resolving them holds.
+    let part = |e: &anchorage::budget::Estimate| e.gather.saturating_sub(e.cache / 10 * 18);
+    let [hd, uhd] = ["[1920,1080]", "[3840,2160]"].map(|r| estimate("brute-force", r));
+    for e in [&hd, &uhd] {
+        assert!(e.gather >= e.cache / 10 * 18, "the resolved strata: {e:?}");
+        assert!(
+            part(e) >= hits * hit && part(e) <= hits * (hit + 32),
+            "one part's hits: {e:?}"
         );
-        for e in [&hd, &uhd] {
-            assert!(
-                e.gather >= e.cache / 10 * resolved + beside,
-                "{method}: the resolved strata: {e:?}"
-            );
-            assert!(
-                part(e) >= hits * hit && part(e) <= hits * (hit + 32),
-                "{method}: one part's hits: {e:?}"
-            );
-        }
+    }
+    assert_eq!(part(&hd), part(&uhd), "the part at twice the resolution");
+    // `anchors` holds 12 bytes a stratum less (no radiance) and its search's shares more.
+    for (resolution, brute) in [("[1920,1080]", &hd), ("[3840,2160]", &uhd)] {
+        let anchors = estimate("anchors", resolution);
+        assert_eq!(anchors.cache, brute.cache);
         assert_eq!(
-            part(&hd),
-            part(&uhd),
-            "{method}: the part at twice the resolution"
+            anchors.gather + anchors.cache / 10 * 12,
+            brute.gather + search,
+            "anchors at {resolution}: {anchors:?} against {brute:?}"
         );
     }
     assert!(hit <= 92, "a gather hit takes {hit} bytes");
