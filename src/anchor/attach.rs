@@ -432,9 +432,9 @@ impl AttachPoint {
 /// searches, made Sponza's frame 1 slower: the searches lose locality.)
 pub const SEARCH_SHARE: usize = 1 << 18;
 
-/// Bytes step 1 holds for a share of hits while it is searched ([`SEARCH_SHARE`]): each
-/// hit's [`AttachPoint`], its position and its [`Searched`]; two shares are held at once
-/// (one searched beside the last one's step 2), 44 MB.
+/// Bytes step 1 holds for a share of hits while it is searched ([`SEARCH_SHARE`]): what it
+/// reads of each hit, the hit's position and what it found; two shares are held at once
+/// (one searched beside the last one's step 2), 48 MB.
 pub const SHARE_BYTES: usize =
     SEARCH_SHARE * (size_of::<AttachPoint>() + size_of::<Vec3>() + size_of::<Searched>());
 
