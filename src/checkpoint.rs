@@ -20,7 +20,10 @@
 //! holds hundreds of megabytes, and one zlib stream compressed it on one thread for about
 //! half as long as the frame took to render. Zstandard at level 1 writes Sponza's state at
 //! the final preset in 0.6–0.7 s, where the same chunks as zlib from libdeflate at level 1
-//! took 1.0 s, into 3 % more bytes (README, "Checkpoints and farm chunks").
+//! took 1.0 s, into 3 % more bytes (README, "Checkpoints and farm chunks"). The state is
+//! encoded and compressed, and read back and decoded, sixteen chunks at a time (`BATCH`;
+//! `ChunkWriter`, `ChunkReader`): neither side holds the encoded state or the file
+//! whole, which at the final preset took half as much memory again as the render.
 //!
 //! The magic and the format come first and fixed, so that a file of another format is named
 //! as such before anything else is decoded. A checkpoint is only read back by the anchorage
@@ -122,34 +125,126 @@ pub fn state_path(dir: &Path, job: &Job, frame: i32) -> PathBuf {
     dir.join(format!("{}.{:04}.state", job.name, frame))
 }
 
-/// Writes `state`, taken after `frame` of the job hashed `job`, to `path` atomically.
+/// Writes `state`, taken after `frame` of the job hashed `job`, to `path` atomically. The
+/// state is encoded, compressed and written as it goes (`ChunkWriter`), so that the writer
+/// holds a batch of chunks of it at a time, not the whole encoded state.
 pub fn write(path: &Path, job: [u8; 32], frame: i32, state: &FrameState) -> Result<()> {
-    write_encoded(path, job, frame, &state.encode())
+    write_with(path, job, frame, |w| {
+        postcard::to_io(state, w)
+            .map(drop)
+            .map_err(|e| std::io::Error::other(format!("cannot encode the state: {e}")))
+    })
 }
 
 /// [`write`] for a state already encoded ([`FrameState::encode`]).
+#[cfg(test)]
 fn write_encoded(path: &Path, job: [u8; 32], frame: i32, raw: &[u8]) -> Result<()> {
-    let chunks = compress(raw, CHUNK)
-        .map_err(|e| Error::Render(format!("cannot compress the state: {e}")))?;
-    let mut hash = blake3::Hasher::new();
-    for c in &chunks {
-        hash.update(c);
-    }
-    let header = Header {
+    write_with(path, job, frame, |w| w.write_all(raw))
+}
+
+/// Writes a checkpoint whose encoded state `encode` writes into the chunks: the header goes
+/// first with its checksum of the chunks left blank, and is written again once the last
+/// chunk is (its length does not depend on the checksum).
+fn write_with(
+    path: &Path,
+    job: [u8; 32],
+    frame: i32,
+    encode: impl FnOnce(
+        &mut ChunkWriter<&mut std::io::BufWriter<&mut std::fs::File>>,
+    ) -> std::io::Result<()>,
+) -> Result<()> {
+    use std::io::{Seek, SeekFrom};
+    let mut header = Header {
         version: env!("CARGO_PKG_VERSION").to_string(),
         build: BUILD.to_string(),
         job,
         frame,
-        body: *hash.finalize().as_bytes(),
+        body: [0; 32],
     };
-    let head = postcard::to_stdvec(&header).expect("header serialises");
     output::write_atomic(path, |w| {
         let e = |e: std::io::Error| e.to_string();
         w.write_all(MAGIC).map_err(e)?;
         w.write_all(&FORMAT.to_le_bytes()).map_err(e)?;
+        let head = postcard::to_stdvec(&header).expect("header serialises");
         w.write_all(&head).map_err(e)?;
-        chunks.iter().try_for_each(|c| w.write_all(c).map_err(e))
+        let mut chunks = ChunkWriter::new(&mut *w, CHUNK);
+        encode(&mut chunks).map_err(e)?;
+        header.body = chunks.finish().map_err(e)?;
+        let again = postcard::to_stdvec(&header).expect("header serialises");
+        if again.len() != head.len() {
+            return Err("the header's length changed with its checksum".into());
+        }
+        let end = w.stream_position().map_err(e)?;
+        w.seek(SeekFrom::Start((MAGIC.len() + 4) as u64))
+            .map_err(e)?;
+        w.write_all(&again).map_err(e)?;
+        w.seek(SeekFrom::Start(end)).map_err(e)?;
+        Ok(())
     })
+}
+
+/// Chunks compressed at once, in parallel, as a checkpoint is written or read: 64 MiB of
+/// the encoded state held at a time (a state at the final preset holds hundreds of MB).
+const BATCH: usize = 16;
+
+/// The most a checkpoint's writing or reading holds beside the state itself: a batch of
+/// chunks encoded and compressed, and the decoder's room for a record's strata (at most
+/// 256 × 256 of 6 bytes).
+pub const BUFFER_BYTES: u64 = (2 * BATCH * CHUNK) as u64 + (1 << 20);
+
+/// The encoded state's bytes into compressed chunks (module doc), [`BATCH`] chunks at a
+/// time, each written with its lengths before it and taken into the checksum.
+struct ChunkWriter<W: Write> {
+    out: W,
+    chunk: usize,
+    raw: Vec<u8>,
+    hash: blake3::Hasher,
+}
+
+impl<W: Write> ChunkWriter<W> {
+    fn new(out: W, chunk: usize) -> Self {
+        ChunkWriter {
+            out,
+            chunk,
+            raw: Vec::with_capacity(BATCH * chunk),
+            hash: blake3::Hasher::new(),
+        }
+    }
+
+    /// Compresses and writes the whole chunks held (`all`: and the last, short one).
+    fn emit(&mut self, all: bool) -> std::io::Result<()> {
+        let n = if all {
+            self.raw.len()
+        } else {
+            self.raw.len() / self.chunk * self.chunk
+        };
+        for c in compress(&self.raw[..n], self.chunk)? {
+            self.hash.update(&c);
+            self.out.write_all(&c)?;
+        }
+        self.raw.drain(..n);
+        Ok(())
+    }
+
+    /// Writes what is left; returns the checksum of every chunk written.
+    fn finish(mut self) -> std::io::Result<[u8; 32]> {
+        self.emit(true)?;
+        Ok(*self.hash.finalize().as_bytes())
+    }
+}
+
+impl<W: Write> Write for ChunkWriter<W> {
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        self.raw.extend_from_slice(data);
+        if self.raw.len() >= BATCH * self.chunk {
+            self.emit(false)?;
+        }
+        Ok(data.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
 }
 
 /// `raw` in chunks of `chunk` bytes (the last may be shorter), compressed in parallel, each
@@ -171,54 +266,220 @@ fn compress(raw: &[u8], chunk: usize) -> std::io::Result<Vec<Vec<u8>>> {
         .collect()
 }
 
-/// What [`compress`] made of bytes in chunks of `chunk`, decompressed in parallel; `Err`
-/// says how the chunks are damaged.
-fn decompress(mut body: &[u8], chunk: usize) -> std::result::Result<Vec<u8>, String> {
-    use rayon::prelude::*;
-    let mut chunks: Vec<(usize, &[u8])> = Vec::new();
-    while !body.is_empty() {
-        let word = |at: usize| {
-            body.get(at..at + 4)
-                .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")) as u64)
-                .ok_or_else(|| format!("chunk {} is cut short", chunks.len()))
-        };
-        let (raw, packed) = (word(0)?, word(4)?);
-        if raw == 0 || raw > chunk as u64 || raw > MAX_RATIO * packed {
-            return Err(format!(
-                "chunk {} claims {raw} bytes from {packed}",
-                chunks.len()
-            ));
+/// The encoded state from a checkpoint's chunks (module doc), read [`BATCH`] chunks at a
+/// time and decompressed in parallel, as the decoder asks for it. Damage (a chunk cut
+/// short, claiming more than it may, holding other bytes than it claims, a short chunk
+/// before the last) ends the reading, and `damage` says what it is.
+struct ChunkReader<R: std::io::Read> {
+    input: R,
+    chunk: usize,
+    /// The batch decompressed, and how much of it was read.
+    ready: Vec<u8>,
+    at: usize,
+    /// Chunks read so far, and the first of them that was short.
+    chunks: usize,
+    short: Option<usize>,
+    damage: Option<String>,
+}
+
+impl<R: std::io::Read> ChunkReader<R> {
+    fn new(input: R, chunk: usize) -> Self {
+        ChunkReader {
+            input,
+            chunk,
+            ready: Vec::new(),
+            at: 0,
+            chunks: 0,
+            short: None,
+            damage: None,
         }
-        let data = body
-            .get(8..8 + packed as usize)
-            .ok_or_else(|| format!("chunk {} is cut short", chunks.len()))?;
-        chunks.push((raw as usize, data));
-        body = &body[8 + packed as usize..];
     }
-    // Every chunk but the last is whole, so each one's place in the state is known.
-    if let Some((i, _)) = chunks
-        .iter()
-        .enumerate()
-        .rev()
-        .skip(1)
-        .find(|(_, (raw, _))| *raw != chunk)
-    {
-        return Err(format!("chunk {i} is not the last and is short"));
-    }
-    let total = chunks.iter().map(|c| c.0).sum();
-    let mut state = vec![0u8; total];
-    state
-        .par_chunks_mut(chunk)
-        .zip(&chunks)
-        .enumerate()
-        .try_for_each(|(i, (out, &(_, data)))| {
-            match zstd::bulk::decompress_to_buffer(data, out) {
-                Ok(n) if n == out.len() => Ok(()),
-                Ok(n) => Err(format!("chunk {i} holds {n} bytes, not {}", out.len())),
-                Err(e) => Err(format!("chunk {i}: {e}")),
+
+    /// The next batch of chunks, decompressed (empty at the end of the chunks).
+    fn next_batch(&mut self) -> std::result::Result<Vec<u8>, String> {
+        use rayon::prelude::*;
+        let mut batch: Vec<(usize, Vec<u8>)> = Vec::new();
+        while batch.len() < BATCH {
+            let i = self.chunks;
+            let cut = || format!("chunk {i} is cut short");
+            let mut lengths = [0u8; 8];
+            match read_full(&mut self.input, &mut lengths) {
+                Ok(0) => break,
+                Ok(8) => {}
+                Ok(_) => return Err(cut()),
+                Err(e) => return Err(format!("chunk {i}: {e}")),
             }
-        })?;
-    Ok(state)
+            let word = |at: usize| {
+                u32::from_le_bytes(lengths[at..at + 4].try_into().expect("4 bytes")) as u64
+            };
+            let (raw, packed) = (word(0), word(4));
+            if raw == 0 || raw > self.chunk as u64 || raw > MAX_RATIO * packed {
+                return Err(format!("chunk {i} claims {raw} bytes from {packed}"));
+            }
+            if let Some(s) = self.short {
+                return Err(format!("chunk {s} is not the last and is short"));
+            }
+            let mut data = vec![0u8; packed as usize];
+            match read_full(&mut self.input, &mut data) {
+                Ok(n) if n == data.len() => {}
+                Ok(_) => return Err(cut()),
+                Err(e) => return Err(format!("chunk {i}: {e}")),
+            }
+            if raw != self.chunk as u64 {
+                self.short = Some(i);
+            }
+            self.chunks += 1;
+            batch.push((raw as usize, data));
+        }
+        let first = self.chunks - batch.len();
+        let mut out = vec![0u8; batch.iter().map(|c| c.0).sum()];
+        let mut places = Vec::with_capacity(batch.len());
+        let mut rest = &mut out[..];
+        for (raw, _) in &batch {
+            let (place, tail) = rest.split_at_mut(*raw);
+            places.push(place);
+            rest = tail;
+        }
+        places
+            .into_par_iter()
+            .zip(&batch)
+            .enumerate()
+            .try_for_each(|(k, (place, (_, data)))| {
+                let i = first + k;
+                match zstd::bulk::decompress_to_buffer(data, place) {
+                    Ok(n) if n == place.len() => Ok(()),
+                    Ok(n) => Err(format!("chunk {i} holds {n} bytes, not {}", place.len())),
+                    Err(e) => Err(format!("chunk {i}: {e}")),
+                }
+            })?;
+        Ok(out)
+    }
+}
+
+impl<R: std::io::Read> ChunkReader<R> {
+    /// Makes the next batch ready once this one is read: false at the end of the chunks or
+    /// where they are damaged (`damage` says how).
+    fn refill(&mut self) -> bool {
+        if self.at < self.ready.len() {
+            return true;
+        }
+        if self.damage.is_some() {
+            return false;
+        }
+        // The batch read is let go before the next is decompressed.
+        (self.ready, self.at) = (Vec::new(), 0);
+        match self.next_batch() {
+            Ok(batch) => self.ready = batch,
+            Err(m) => self.damage = Some(m),
+        }
+        !self.ready.is_empty()
+    }
+}
+
+impl<R: std::io::Read> std::io::Read for ChunkReader<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if !self.refill() {
+            return match &self.damage {
+                Some(m) => Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidData,
+                    m.clone(),
+                )),
+                None => Ok(0),
+            };
+        }
+        let n = buf.len().min(self.ready.len() - self.at);
+        buf[..n].copy_from_slice(&self.ready[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
+}
+
+/// The decoder's view of a [`ChunkReader`] (postcard's deserialisation `Flavor`): each byte
+/// and each run of bytes straight from the batch decompressed, or, for a run that spans two
+/// batches, copied into `joined` (at most `max` bytes: a record's strata). Byte strings
+/// borrowed from the input are not given: the state's own are taken owned
+/// (`cache::record`'s strata planes), and a request for one ends the decoding as damage.
+struct Decoding<'r, R: std::io::Read> {
+    chunks: &'r mut ChunkReader<R>,
+    joined: Vec<u8>,
+    max: usize,
+}
+
+impl<'de, R: std::io::Read + 'de> postcard::de_flavors::Flavor<'de> for Decoding<'de, R> {
+    type Remainder = ();
+    type Source = ();
+
+    #[inline]
+    fn pop(&mut self) -> postcard::Result<u8> {
+        let c = &mut *self.chunks;
+        if !c.refill() {
+            return Err(postcard::Error::DeserializeUnexpectedEnd);
+        }
+        c.at += 1;
+        Ok(c.ready[c.at - 1])
+    }
+
+    fn try_take_n(&mut self, _: usize) -> postcard::Result<&'de [u8]> {
+        Err(postcard::Error::DeserializeUnexpectedEnd)
+    }
+
+    fn try_take_n_temp<'a>(&'a mut self, ct: usize) -> postcard::Result<&'a [u8]>
+    where
+        'de: 'a,
+    {
+        let c = &mut *self.chunks;
+        if !c.refill() && ct > 0 {
+            return Err(postcard::Error::DeserializeUnexpectedEnd);
+        }
+        if c.ready.len() - c.at >= ct {
+            c.at += ct;
+            return Ok(&c.ready[c.at - ct..c.at]);
+        }
+        if ct > self.max {
+            return Err(postcard::Error::DeserializeUnexpectedEnd);
+        }
+        self.joined.clear();
+        while self.joined.len() < ct {
+            if !c.refill() {
+                return Err(postcard::Error::DeserializeUnexpectedEnd);
+            }
+            let n = (ct - self.joined.len()).min(c.ready.len() - c.at);
+            self.joined.extend_from_slice(&c.ready[c.at..c.at + n]);
+            c.at += n;
+        }
+        Ok(&self.joined)
+    }
+
+    fn finalize(self) -> postcard::Result<()> {
+        Ok(())
+    }
+}
+
+/// Reads into `buf` until it is full or the input ends: the bytes read.
+fn read_full(input: &mut impl std::io::Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match input.read(&mut buf[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(n)
+}
+
+/// What [`compress`] made of bytes in chunks of `chunk`, decompressed; `Err` says how the
+/// chunks are damaged.
+#[cfg(test)]
+fn decompress(body: &[u8], chunk: usize) -> std::result::Result<Vec<u8>, String> {
+    use std::io::Read;
+    let mut r = ChunkReader::new(body, chunk);
+    let mut out = Vec::new();
+    match r.read_to_end(&mut out) {
+        Ok(_) => Ok(out),
+        Err(e) => Err(r.damage.unwrap_or_else(|| e.to_string())),
+    }
 }
 
 /// Reads the checkpoint at `path` for the job hashed `job`, whose records have `strata`
@@ -226,21 +487,38 @@ fn decompress(mut body: &[u8], chunk: usize) -> std::result::Result<Vec<u8>, Str
 /// format, anchorage build or job, or damaged, is refused with an input error that says
 /// which.
 pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameState)> {
+    use std::io::{BufReader, Read, Seek, SeekFrom};
     let bad = |m: String| Error::input(path, "checkpoint", m);
-    let bytes = crate::scene::gltf::read_limited(path, "checkpoint", MAX_BYTES)?;
-    if bytes.len() < 12 || &bytes[..8] != MAGIC {
+    let unreadable = |e: std::io::Error| bad(format!("cannot read: {e}"));
+    let mut file = std::fs::File::open(path).map_err(unreadable)?;
+    let meta = file.metadata().map_err(unreadable)?;
+    if !meta.is_file() {
+        return Err(bad("is not a regular file".into()));
+    }
+    if meta.len() > MAX_BYTES {
+        return Err(bad(format!(
+            "is {} bytes, more than the {MAX_BYTES} bytes allowed",
+            meta.len()
+        )));
+    }
+    // The magic, the format and the header (a few hundred bytes) from the file's start.
+    let mut start = vec![0u8; 4096];
+    let got = read_full(&mut file, &mut start).map_err(unreadable)?;
+    start.truncate(got);
+    if start.len() < 12 || &start[..8] != MAGIC {
         return Err(bad(
             "is not an anchorage checkpoint (no ANCHSTAT header)".into()
         ));
     }
-    let format = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    let format = u32::from_le_bytes(start[8..12].try_into().expect("4 bytes"));
     if format != FORMAT {
         return Err(bad(format!(
             "is checkpoint format {format}; this anchorage reads format {FORMAT}"
         )));
     }
-    let (header, rest): (Header, _) = postcard::take_from_bytes(&bytes[12..])
+    let (header, rest): (Header, _) = postcard::take_from_bytes(&start[12..])
         .map_err(|e| bad(format!("has a damaged header: {e}")))?;
+    let body_at = (start.len() - rest.len()) as u64;
     let ours = env!("CARGO_PKG_VERSION");
     if header.version != ours || header.build != BUILD {
         return Err(bad(format!(
@@ -260,13 +538,34 @@ pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameStat
             header.frame
         )));
     }
-    if *blake3::hash(rest).as_bytes() != header.body {
+    // The chunks are checked against the header's checksum before any is decompressed, in
+    // one pass over the file, then read again as they are decoded: neither pass holds the
+    // file, nor the encoded state, whole.
+    file.seek(SeekFrom::Start(body_at)).map_err(unreadable)?;
+    let mut hash = blake3::Hasher::new();
+    hash.update_reader(&mut file).map_err(unreadable)?;
+    if *hash.finalize().as_bytes() != header.body {
         return Err(bad(
             "is damaged: its state does not match its checksum".into()
         ));
     }
-    let body = decompress(rest, CHUNK).map_err(|e| bad(format!("is damaged: {e}")))?;
-    let state = FrameState::decode(&body).map_err(|e| bad(format!("is damaged: {e}")))?;
+    file.seek(SeekFrom::Start(body_at)).map_err(unreadable)?;
+    let mut chunks = ChunkReader::new(BufReader::new(file.take(meta.len())), CHUNK);
+    let mut decoder = postcard::Deserializer::from_flavor(Decoding {
+        chunks: &mut chunks,
+        joined: Vec::new(),
+        // The longest byte string the state holds: a record's strata.
+        max: strata * size_of::<crate::cache::Stratum>() + (64 << 10),
+    });
+    let decoded = FrameState::deserialize(&mut decoder);
+    drop(decoder);
+    let state = match decoded {
+        Ok(state) => state,
+        Err(e) => {
+            let why = chunks.damage.clone().unwrap_or_else(|| e.to_string());
+            return Err(bad(format!("is damaged: {why}")));
+        }
+    };
     state
         .check(strata)
         .map_err(|e| bad(format!("is inconsistent: {e}")))?;
@@ -351,6 +650,40 @@ mod tests {
                 .unwrap_err()
                 .contains("chunk 0 is not the last")
         );
+    }
+
+    /// A checkpoint is written and read a batch of chunks at a time: the writer holds at
+    /// most a batch of the encoded state (and the write that filled it), the reader one
+    /// batch decompressed, and the chunks are those of the whole state compressed at once.
+    #[test]
+    fn chunks_stream_a_batch_at_a_time() {
+        use std::io::Read;
+        let chunk = 64;
+        let raw: Vec<u8> = (0..(BATCH as u32 * 3 + 5) * chunk as u32 + 17)
+            .map(|i| (crate::sampling::hash(&[i / 5]) % 11) as u8)
+            .collect();
+        let mut out = Vec::new();
+        let mut w = ChunkWriter::new(&mut out, chunk);
+        for piece in raw.chunks(100) {
+            w.write_all(piece).unwrap();
+            assert!(w.raw.len() < BATCH * chunk + piece.len(), "{}", w.raw.len());
+        }
+        let sum = w.finish().unwrap();
+        let whole = compress(&raw, chunk).unwrap().concat();
+        assert!(out == whole, "the chunks of the state compressed at once");
+        assert_eq!(sum, *blake3::hash(&whole).as_bytes());
+        let mut r = ChunkReader::new(&out[..], chunk);
+        let mut back = Vec::new();
+        let mut piece = [0u8; 10];
+        loop {
+            let n = r.read(&mut piece).unwrap();
+            assert!(r.ready.len() <= BATCH * chunk);
+            if n == 0 {
+                break;
+            }
+            back.extend_from_slice(&piece[..n]);
+        }
+        assert!(back == raw, "the state read back");
     }
 
     /// A record's strata survive the byte planes they are stored in; a byte string that is

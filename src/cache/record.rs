@@ -116,8 +116,10 @@ mod strata_planes {
         s.serialize_bytes(&planes)
     }
 
+    /// (As an owned byte string: a checkpoint is decoded as it is read, a chunk at a time,
+    /// and a borrowed one would have to stay in the decoder's buffer until the end.)
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Stratum>, D::Error> {
-        d.deserialize_bytes(Planes)
+        d.deserialize_byte_buf(Planes)
     }
 
     struct Planes;
