@@ -9,7 +9,8 @@
 //! places 48–87 % of that); while a batch of records is gathered, the strata and radiance
 //! it resolves (`anchors`: the strata alone) and the hits of one part of it
 //! ([`crate::cache::gather::PART_HITS`]) with what resolving them holds; with
-//! checkpoints, the buffers a checkpoint holds while it is written or read; the scene's own
+//! checkpoints, the buffers a checkpoint holds while it is written or read (a batch of its
+//! chunks: it is encoded and decoded as it streams); the scene's own
 //! geometry and textures as loaded.
 
 use std::path::Path;
@@ -43,11 +44,6 @@ const PART_BYTES_PER_HIT: u64 = size_of::<crate::cache::GatherHit>() as u64 + 24
 /// What `anchors` holds beside a part while its hits attach: two shares of the search
 /// ([`crate::anchor::attach::SHARE_BYTES`]).
 const ANCHOR_SEARCH_BYTES: u64 = 2 * crate::anchor::attach::SHARE_BYTES as u64;
-/// Bytes per stratum a checkpoint holds beside the cache while it is written (the encoded
-/// state and its compressed chunks) or read (the file and the encoded state): measured on
-/// Sponza at the final preset, 7.7 and 5.0 bytes a stratum (273 and 176 MB for 35.4 M
-/// strata), with margin.
-const CHECKPOINT_BYTES_PER_STRATUM: u64 = 14;
 /// Bytes per triangle: its vertices (48) and shading record (80), and its share of the BVH
 /// with the traversal's copy of it (`accel::pairs`: 101 a triangle on Sponza).
 const BYTES_PER_TRIANGLE: u64 = 48 + 80 + 104;
@@ -93,7 +89,7 @@ impl Estimate {
                 records * strata * BYTES_PER_STRATUM,
                 records * strata * resolved + part * strata * PART_BYTES_PER_HIT + search,
                 if checkpoints {
-                    records * strata * CHECKPOINT_BYTES_PER_STRATUM
+                    crate::checkpoint::BUFFER_BYTES
                 } else {
                     0
                 },
