@@ -9,7 +9,8 @@
 #   scripts/mutations.sh d-max-4x ...    the named ones
 #   MUTATION_TESTS="filter ..." scripts/mutations.sh NAME   other test filters
 #
-# The tests per mutation are listed below (the test binary's name filters); each patch's
+# The tests per mutation are listed below (the integration-test binary's name filters, or
+# with "lib:" the library's unit tests'); each patch's
 # first lines say what it breaks. Needs a clean src/ (uncommitted changes there would be
 # mixed into the mutants). Exit status: 0 when every mutation was caught, 1 otherwise.
 set -euo pipefail
@@ -57,6 +58,8 @@ declare -A TESTS=(
   [gather-estimate-unparted]="hardening::gathering_counts"
   [dynamic-radiance-dropped]="anchor_faults anchors::"
   [gather-search-uncounted]="hardening::gathering_counts"
+  [checkpoint-written-whole]="lib:checkpoint::"
+  [checkpoint-read-whole]="lib:checkpoint::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -68,7 +71,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   shares-forget-made enclosed-placed-again anchor-direct-dropped first-hits-counted-twice
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
-  gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted)
+  gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
+  checkpoint-written-whole checkpoint-read-whole)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
@@ -87,10 +91,13 @@ restore() {
 trap restore EXIT
 trap 'restore; exit 130' INT TERM
 
-# Builds the integration-test binary and prints its path (empty if the build failed).
+# Builds the integration-test binary (with "lib", the library's unit tests) and prints its
+# path (empty if the build failed).
 test_binary() {
-  cargo test --release --test main --no-run --message-format=json 2>/dev/null |
-    grep -F '"kind":["test"]' | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1
+  local target=(--test main) kind='"kind":["test"]'
+  [ "${1:-}" = lib ] && target=(--lib) kind='"kind":["lib"]'
+  cargo test --release "${target[@]}" --no-run --message-format=json 2>/dev/null |
+    grep -F "$kind" | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1
 }
 
 declare -A RESULT
@@ -99,10 +106,13 @@ for name in "${names[@]}"; do
   patch="scripts/mutations/$name.patch"
   [ -f "$patch" ] || { echo "mutations.sh: no $patch" >&2; exit 2; }
   filters="${MUTATION_TESTS:-${TESTS[$name]:-anchor}}"
+  # "lib:FILTER" runs the library's unit tests.
+  suite=main
+  case "$filters" in lib:*) suite=lib filters="${filters#lib:}" ;; esac
   echo "== $name: $(sed -n 's/^# //p' "$patch" | head -1)"
   git apply "$patch"
   applied="$patch"
-  bin="$(test_binary)"
+  bin="$(test_binary "$suite")"
   [ -n "$bin" ] || { echo "mutations.sh: $name does not build" >&2; exit 2; }
   log="target/mutations/$name.log"
   mkdir -p target/mutations
@@ -111,7 +121,7 @@ for name in "${names[@]}"; do
     RESULT[$name]="MISSED"
     missed=$((missed + 1))
   else
-    RESULT[$name]="CAUGHT by $(sed -n 's/^    \(it::[^ ]*\)$/\1/p' "$log" | sort -u | tr '\n' ' ')"
+    RESULT[$name]="CAUGHT by $(sed -n 's/^    \([a-z_]*::[^ ]*\)$/\1/p' "$log" | sort -u | tr '\n' ' ')"
   fi
   echo "   ${RESULT[$name]} (log: $log)"
   restore
