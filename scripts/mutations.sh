@@ -10,7 +10,7 @@
 #   MUTATION_TESTS="filter ..." scripts/mutations.sh NAME   other test filters
 #
 # The tests per mutation are listed below (the integration-test binary's name filters, or
-# with "lib:" the library's unit tests'); each patch's
+# with "lib:" the library's unit tests); each patch's
 # first lines say what it breaks. Needs a clean src/ (uncommitted changes there would be
 # mixed into the mutants). Exit status: 0 when every mutation was caught, 1 otherwise.
 set -euo pipefail
