@@ -490,17 +490,7 @@ pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameStat
     use std::io::{BufReader, Read, Seek, SeekFrom};
     let bad = |m: String| Error::input(path, "checkpoint", m);
     let unreadable = |e: std::io::Error| bad(format!("cannot read: {e}"));
-    let mut file = std::fs::File::open(path).map_err(unreadable)?;
-    let meta = file.metadata().map_err(unreadable)?;
-    if !meta.is_file() {
-        return Err(bad("is not a regular file".into()));
-    }
-    if meta.len() > MAX_BYTES {
-        return Err(bad(format!(
-            "is {} bytes, more than the {MAX_BYTES} bytes allowed",
-            meta.len()
-        )));
-    }
+    let (mut file, len) = crate::scene::gltf::open_limited(path, "checkpoint", MAX_BYTES)?;
     // The magic, the format and the header (a few hundred bytes) from the file's start.
     let mut start = vec![0u8; 4096];
     let got = read_full(&mut file, &mut start).map_err(unreadable)?;
@@ -550,7 +540,7 @@ pub fn read(path: &Path, job: [u8; 32], strata: usize) -> Result<(i32, FrameStat
         ));
     }
     file.seek(SeekFrom::Start(body_at)).map_err(unreadable)?;
-    let mut chunks = ChunkReader::new(BufReader::new(file.take(meta.len())), CHUNK);
+    let mut chunks = ChunkReader::new(BufReader::new(file.take(len)), CHUNK);
     let mut decoder = postcard::Deserializer::from_flavor(Decoding {
         chunks: &mut chunks,
         joined: Vec::new(),

@@ -197,11 +197,9 @@ pub const MAX_RESOURCE_BYTES: u64 = u32::MAX as u64;
 /// The most texels a decoded image may have (16384²).
 pub const MAX_IMAGE_TEXELS: u64 = 16384 * 16384;
 
-/// Reads `file` (element `at` of glTF file `path`), which must be a regular file of at most
-/// `limit` bytes: a device such as `/dev/zero` or an oversized file is refused before it is
-/// read, and reading stops at the limit should the file grow meanwhile.
-pub fn read_limited(file: &Path, at: &str, limit: u64) -> Result<Vec<u8>> {
-    use std::io::Read;
+/// Opens `file` (element `at` of the input), which must be a regular file of at most `limit`
+/// bytes: the file and its length, or an error naming it, before anything is read.
+pub fn open_limited(file: &Path, at: &str, limit: u64) -> Result<(std::fs::File, u64)> {
     let bad = |m: String| Error::input(file, at, m);
     let f = std::fs::File::open(file).map_err(|e| bad(format!("cannot read: {e}")))?;
     let meta = f.metadata().map_err(|e| bad(format!("cannot read: {e}")))?;
@@ -214,7 +212,17 @@ pub fn read_limited(file: &Path, at: &str, limit: u64) -> Result<Vec<u8>> {
             meta.len()
         )));
     }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    Ok((f, meta.len()))
+}
+
+/// Reads `file` (element `at` of glTF file `path`), which must be a regular file of at most
+/// `limit` bytes: a device such as `/dev/zero` or an oversized file is refused before it is
+/// read, and reading stops at the limit should the file grow meanwhile.
+pub fn read_limited(file: &Path, at: &str, limit: u64) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let bad = |m: String| Error::input(file, at, m);
+    let (f, len) = open_limited(file, at, limit)?;
+    let mut bytes = Vec::with_capacity(len as usize);
     f.take(limit + 1)
         .read_to_end(&mut bytes)
         .map_err(|e| bad(format!("cannot read: {e}")))?;
