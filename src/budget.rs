@@ -6,7 +6,7 @@
 //! per pixel the AOVs, the render's pixel accumulators and the EXR encoder's channel copies;
 //! per photon its record and its share of the kd-tree, for the longest expected paths; per
 //! cache record its strata, for records as dense as the minimum spacing allows (Sponza
-//! places 48–87 % of that); while a batch of records is gathered, the strata and radiance
+//! places 31–87 % of that); while a batch of records is gathered, the strata and radiance
 //! it resolves (`anchors`: the strata alone) and the hits of one part of it
 //! ([`crate::cache::gather::PART_HITS`]) with what resolving them holds; with
 //! checkpoints, the buffers a checkpoint holds while it is written or read (a batch of its
@@ -74,8 +74,9 @@ impl Estimate {
         let cached = !matches!(job.method.name, Method::Direct | Method::PathTrace);
         let (photons, cache, gather, checkpoint) = if cached {
             // One record per square of the minimum spacing: Sponza's first frame places 70 %
-            // of that at the final preset (1.5 pixels) at 320×180 (18 050 records) and 48 %
-            // at 640×360 (49 285), and 81 % at production (2 pixels) at 320×180 (11 610).
+            // of that at the final preset (1.5 pixels) at 320×180 (18 050 records), 48 % at
+            // 640×360 (49 285) and 31 % at 1280×720 (125 191), and 81 % at production
+            // (2 pixels) at 320×180 (11 610).
             let spacing = f64::from(p.cache.min_spacing_px.max(1.0));
             let records = (pixels as f64 / (spacing * spacing)).ceil() as u64;
             let strata = u64::from(p.cache.strata[0]) * u64::from(p.cache.strata[1]);
