@@ -54,9 +54,9 @@ impl GatherHit {
 }
 
 /// Each record's strata and the radiance the resolver keeps for them, in the order of its
-/// strata: every stratum's (brute force), or only that of the strata that link no anchor
-/// (`anchors`: a linked stratum's radiance is its anchor's, read when the record is made,
-/// [`Resolve::radiance`]).
+/// strata: every stratum's (brute force), or only that of the strata whose rays met a
+/// dynamic prim (`anchors`: a linked stratum's radiance is its anchor's, read when the
+/// record is made, [`Resolve::radiance`], and a miss's is zero).
 pub type Resolved = (Vec<Stratum>, Vec<Vec3>);
 
 /// Turns a gather's hits into strata and their radiance: the method's part of a gather

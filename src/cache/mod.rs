@@ -656,7 +656,9 @@ impl IrradianceCache {
             .zip(resolved)
             .map(|(r, (strata, kept))| {
                 let rad = resolve.radiance(&strata, kept);
-                r.with_strata(strata, &rad, p, frame_number)
+                let mut record = r.with_strata(strata, &rad, p, frame_number);
+                resolve.made(&mut record, &rad);
+                record
             })
             .collect();
         timings.integration += t2.elapsed().as_secs_f64();
