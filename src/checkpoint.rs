@@ -376,6 +376,9 @@ impl<R: std::io::Read> ChunkReader<R> {
     }
 }
 
+/// (For the tests, which read the chunks as bytes; the decoder reads them through
+/// `Decoding`.)
+#[cfg(test)]
 impl<R: std::io::Read> std::io::Read for ChunkReader<R> {
     fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
         if !self.refill() {

@@ -757,7 +757,7 @@ fn update_records(
             return;
         }
         let mut strata = std::mem::take(&mut r.strata);
-        let mut rad = strata_radiance(&radiance, &strata);
+        let mut rad = linked_radiance(&strata, &[], |a| radiance[a.index()]);
         for ((&s, ns), nr) in list.iter().zip(new_strata).zip(new_rad) {
             strata[s as usize] = ns;
             rad[s as usize] = nr;
@@ -802,15 +802,6 @@ fn place_records(
         );
     }
     timings.linked(linking);
-}
-
-/// The radiance each stratum reads from its anchor (zero where it links none), from each
-/// anchor's `radiance`.
-fn strata_radiance(radiance: &[Vec3], strata: &[Stratum]) -> Vec<Vec3> {
-    strata
-        .iter()
-        .map(|s| s.link().map_or(Vec3::ZERO, |a| radiance[a.index()]))
-        .collect()
 }
 
 /// The most shares [`anchor_references`] counts in at once: 4 bytes per anchor each, for
