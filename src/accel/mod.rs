@@ -854,6 +854,16 @@ mod tests {
         };
         let (front, back) = (half(0..72), half(72..144));
         let split = Accel::build(&front, &back);
+        // The same trees with the walk of rays from one point in four lanes only, which
+        // the others take only where the CPU lacks AVX2.
+        let narrow = |s: &Geometry, d: &Geometry| {
+            let mut statics = StaticBvh::build(s);
+            statics.tree = statics.tree.four_lanes();
+            Accel::with_static(Arc::new(statics), d)
+        };
+        let (a4, split4) = (narrow(&g, &e), narrow(&front, &back));
+        assert!(!a4.statics.tree.wide());
+        assert_eq!(a.statics.tree.wide(), pairs::has_avx2());
         let mut targets = Vec::new();
         for y in 0..13 {
             for x in 0..13 {
@@ -897,7 +907,9 @@ mod tests {
                         .map(|&target| target - o)
                 });
                 // Both grids static, and the front one static with the back one dynamic.
-                for (a, s, d) in [(&a, &g, &e), (&split, &front, &back)] {
+                let sets = [(&a, &g, &e), (&split, &front, &back)];
+                let four_lanes = [(&a4, &g, &e), (&split4, &front, &back)];
+                for (a, s, d) in sets.into_iter().chain(four_lanes) {
                     let found = a.closest4(s, d, o, dirs);
                     for (dir, hit) in dirs.into_iter().zip(found) {
                         let alone = dir.and_then(|dir| a.closest(s, d, o, dir, f32::INFINITY));

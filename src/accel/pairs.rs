@@ -19,6 +19,10 @@
 //! Sponza's gather rays that traces 1.20–1.23× as many a second as one ray at a time, with the
 //! same hits (`cargo bench --bench rays`).
 //!
+//! Where the CPU has AVX2, rays from one point take [`wide`]'s tests instead: a pair's two
+//! boxes against the four rays in eight lanes, and a leaf's blocks against two rays at once,
+//! with the same arithmetic lane by lane, and so the same hits.
+//!
 //! A four-wide tree (obvhs's BVH2 collapsed, each node taking in the children of its largest
 //! interior children, the entered children sorted by entry distance) traced 17 % fewer
 //! closest-hit rays a second than these pairs and 40 % fewer shadow rays, and so is not used.
@@ -44,8 +48,13 @@ use obvhs::faststack::FastStack;
 use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 
-use super::{ShearedRay, t_error};
+use super::{Lanes, ShearedRay, t_error};
 use crate::geom::Geometry;
+
+#[cfg(target_arch = "x86_64")]
+mod wide;
+#[cfg(target_arch = "x86_64")]
+use wide::Wide;
 
 /// A node's link: a leaf's triangles in slots `index..index + count` (`count` > 0),
 /// or the pair that holds an interior node's two children (`count` 0).
@@ -88,6 +97,8 @@ pub(super) struct PairTree {
     /// Bit `i` set where the triangle in slot `i` is alpha-masked.
     masked: Vec<u64>,
     max_depth: usize,
+    /// Whether [`PairTree::closest4`] tests boxes with AVX2 ([`Wide`]): where the CPU has it.
+    wide: bool,
 }
 
 impl PairTree {
@@ -101,6 +112,7 @@ impl PairTree {
                 order: Vec::new(),
                 masked: Vec::new(),
                 max_depth: 0,
+                wide: false,
             };
         };
         let mut quads: Vec<Quad> = Vec::new();
@@ -169,7 +181,22 @@ impl PairTree {
             order,
             masked,
             max_depth: bvh.max_depth,
+            wide: has_avx2(),
         }
+    }
+
+    /// Whether [`PairTree::closest4`] runs in AVX2's eight lanes ([`Wide`]) for rays from one
+    /// point.
+    #[cfg(test)]
+    pub(super) fn wide(&self) -> bool {
+        self.wide
+    }
+
+    /// The same tree, [`PairTree::closest4`] in four lanes only.
+    #[cfg(test)]
+    pub(super) fn four_lanes(mut self) -> PairTree {
+        self.wide = false;
+        self
     }
 
     /// Bytes on the heap: `bvh`'s (the tree this one was laid out from) and this copy's.
@@ -279,16 +306,40 @@ impl PairTree {
         srs: &[ShearedRay; 4],
         active: u32,
     ) -> [Option<(f32, u32)>; 4] {
+        let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
+        let inv = [inv(0), inv(1), inv(2)];
         let o = rays[0].origin;
         if rays.iter().all(|r| r.origin == o) {
-            self.closest4_from(g, rays, srs, active, o)
+            #[cfg(target_arch = "x86_64")]
+            if self.wide {
+                // SAFETY: `wide` is set only where the CPU has AVX2 (`PairTree::new`).
+                return unsafe { self.closest4_wide(g, rays, srs, active, o, inv) };
+            }
+            self.closest4_from(g, rays, srs, active, Narrow { origins: o, inv })
         } else {
             let lanes = |a: usize| Vec4::from_array(rays.map(|r| r.origin[a]));
-            self.closest4_from(g, rays, srs, active, [lanes(0), lanes(1), lanes(2)])
+            let origins = [lanes(0), lanes(1), lanes(2)];
+            self.closest4_from(g, rays, srs, active, Narrow { origins, inv })
         }
     }
 
-    /// [`PairTree::closest4`] for rays that leave from `origins`.
+    /// [`PairTree::closest4`] for rays from one point, each pair's two boxes tested in
+    /// the eight lanes of AVX2 ([`Wide`]).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn closest4_wide(
+        &self,
+        g: &Geometry,
+        rays: &[Ray; 4],
+        srs: &[ShearedRay; 4],
+        active: u32,
+        o: Vec3A,
+        inv: [Vec4; 3],
+    ) -> [Option<(f32, u32)>; 4] {
+        self.closest4_from(g, rays, srs, active, Wide::new(o, inv))
+    }
+
+    /// [`PairTree::closest4`], each pair's boxes tested by `boxes`.
     #[inline(always)]
     fn closest4_from(
         &self,
@@ -296,7 +347,7 @@ impl PairTree {
         rays: &[Ray; 4],
         srs: &[ShearedRay; 4],
         active: u32,
-        origins: impl Origins,
+        walk: impl FourRays,
     ) -> [Option<(f32, u32)>; 4] {
         let mut best: [Option<(f32, u32)>; 4] = [None; 4];
         let Some((root_box, root)) = &self.root else {
@@ -308,13 +359,7 @@ impl PairTree {
             .fold(0u32, |m, i| m | 1 << i);
         let leaf =
             |link: Link, lanes: u32, tmax: &mut [f32; 4], best: &mut [Option<(f32, u32)>; 4]| {
-                for i in set_bits(lanes) {
-                    let b = &mut best[i];
-                    self.leaf_hits(&srs[i], g, link, &mut tmax[i], |id, t, tmax| {
-                        self.keep_nearer(b, id, t, tmax);
-                        true
-                    });
-                }
+                walk.leaf(self, g, srs, link, lanes, tmax, best)
             };
         if active == 0 {
             return best;
@@ -323,34 +368,13 @@ impl PairTree {
             leaf(*root, active, &mut tmax, &mut best);
             return best;
         }
-        let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
-        let (ix, iy, iz) = (inv(0), inv(1), inv(2));
-        // One axis's slab for the four rays: the distances to its two planes (each lane as
-        // obvhs's `Aabb::intersect_ray` computes it for its ray).
-        let slab = |lo: f32, hi: f32, axis: usize, inv: Vec4| {
-            (
-                origins.to_plane(lo, axis) * inv,
-                origins.to_plane(hi, axis) * inv,
-            )
-        };
         obvhs::fast_stack!(u64, (96, 192), self.max_depth, stack, {
             // The pair to open and the lanes that entered its parent's box.
             let (mut current, mut lanes) = (root.index, active);
             loop {
                 let p = &self.pairs[current as usize];
-                let far_limit = Vec4::from_array(tmax);
-                // Child `c`'s slab test for the four rays (obvhs's `Aabb::intersect_ray`,
-                // lane by lane): entry distances and the lanes that enter it.
-                let enter = |c: usize| {
-                    let (x0, x1) = slab(p.x[c], p.x[c + 2], 0, ix);
-                    let (y0, y1) = slab(p.y[c], p.y[c + 2], 1, iy);
-                    let (z0, z1) = slab(p.z[c], p.z[c + 2], 2, iz);
-                    let near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1));
-                    let far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1));
-                    let hit = far.cmpge(near) & far.cmpge(Vec4::ZERO) & near.cmplt(far_limit);
-                    (near, hit.bitmask() & lanes)
-                };
-                let mut kids = [(enter(0), p.link[0]), (enter(1), p.link[1])];
+                let entered = walk.enter(p, Vec4::from_array(tmax), lanes);
+                let mut kids = [(entered[0], p.link[0]), (entered[1], p.link[1])];
                 // The nearer first, for the first lane that enters both.
                 let both = kids[0].0.1 & kids[1].0.1;
                 if both != 0 {
@@ -476,6 +500,93 @@ impl PairTree {
     }
 }
 
+/// How [`PairTree::closest4`] tests its four rays against a pair's boxes and a leaf's
+/// triangles.
+trait FourRays: Copy {
+    /// The test of a pair's two boxes (obvhs's `Aabb::intersect_ray`, lane by lane): for
+    /// each child, the rays' entry distances and the lanes of `lanes` whose rays enter it
+    /// before their `far_limit`.
+    fn enter(self, p: &Pair, far_limit: Vec4, lanes: u32) -> [(Vec4, u32); 2];
+
+    /// The rays of `lanes` against `leaf`'s triangles: each lane's nearest hit kept in
+    /// `best` ([`PairTree::keep_nearer`]), its `tmax` shortened.
+    #[allow(clippy::too_many_arguments)] // the walk's state, passed as `closest4` holds it
+    fn leaf(
+        self,
+        tree: &PairTree,
+        g: &Geometry,
+        srs: &[ShearedRay; 4],
+        leaf: Link,
+        lanes: u32,
+        tmax: &mut [f32; 4],
+        best: &mut [Option<(f32, u32)>; 4],
+    );
+}
+
+/// The test in four SIMD lanes, a child at a time.
+#[derive(Clone, Copy)]
+struct Narrow<O> {
+    origins: O,
+    /// Each axis's reciprocal direction components, a ray a lane.
+    inv: [Vec4; 3],
+}
+
+impl<O: Origins> FourRays for Narrow<O> {
+    #[inline(always)]
+    fn enter(self, p: &Pair, far_limit: Vec4, lanes: u32) -> [(Vec4, u32); 2] {
+        let [ix, iy, iz] = self.inv;
+        // One axis's slab for the four rays: the distances to its two planes.
+        let slab = |lo: f32, hi: f32, axis: usize, inv: Vec4| {
+            (
+                self.origins.to_plane(lo, axis) * inv,
+                self.origins.to_plane(hi, axis) * inv,
+            )
+        };
+        let enter = |c: usize| {
+            let (x0, x1) = slab(p.x[c], p.x[c + 2], 0, ix);
+            let (y0, y1) = slab(p.y[c], p.y[c + 2], 1, iy);
+            let (z0, z1) = slab(p.z[c], p.z[c + 2], 2, iz);
+            let near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1));
+            let far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1));
+            let hit = far.cmpge(near) & far.cmpge(Vec4::ZERO) & near.cmplt(far_limit);
+            (near, hit.bitmask() & lanes)
+        };
+        [enter(0), enter(1)]
+    }
+
+    #[inline(always)]
+    fn leaf(
+        self,
+        tree: &PairTree,
+        g: &Geometry,
+        srs: &[ShearedRay; 4],
+        leaf: Link,
+        lanes: u32,
+        tmax: &mut [f32; 4],
+        best: &mut [Option<(f32, u32)>; 4],
+    ) {
+        for i in set_bits(lanes) {
+            let b = &mut best[i];
+            tree.leaf_hits(&srs[i], g, leaf, &mut tmax[i], |id, t, tmax| {
+                tree.keep_nearer(b, id, t, tmax);
+                true
+            });
+        }
+    }
+}
+
+/// Whether the CPU has AVX2, which [`Wide`] needs.
+pub(super) fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Where the four rays of [`PairTree::closest4`] leave from: one point for all of them (a
 /// record's gather rays), or one for each lane (camera rays from the near plane).
 trait Origins: Copy {
@@ -499,10 +610,73 @@ impl Origins for [Vec4; 3] {
 
 /// What [`block_test`] finds of a block's four triangles: `hit` holds the lanes hit at `t`,
 /// `rest` those the one-triangle test must decide (module doc); as bits.
-struct BlockHits {
-    t: Vec4,
+struct BlockHits<L = Vec4> {
+    t: L,
     hit: u32,
     rest: u32,
+}
+
+/// The lanes a block test computes in: a block's four triangles against one ray (`Vec4`), or
+/// against two rays from one point (`wide::W8`, lanes 0–3 the first ray's, 4–7 the
+/// second's). Each operation is the same IEEE operation in every lane, so every lane rounds
+/// as [`Vec4`]'s does.
+trait BlockLanes:
+    Lanes + std::ops::Sub<Output = Self> + std::ops::Div<Output = Self> + std::ops::Neg<Output = Self>
+{
+    type Mask: Copy + std::ops::BitOr<Output = Self::Mask> + std::ops::BitAnd<Output = Self::Mask>;
+    /// Every lane's bit.
+    const ALL: u32;
+    fn splat(x: f32) -> Self;
+    /// A coordinate of a block's four triangles, in each ray's lanes.
+    fn block(v: Vec4) -> Self;
+    fn lt(self, other: Self) -> Self::Mask;
+    fn gt(self, other: Self) -> Self::Mask;
+    fn le(self, other: Self) -> Self::Mask;
+    fn eq(self, other: Self) -> Self::Mask;
+    fn ne(self, other: Self) -> Self::Mask;
+    fn finite(self) -> Self::Mask;
+    fn bits(m: Self::Mask) -> u32;
+}
+
+impl BlockLanes for Vec4 {
+    type Mask = glam::BVec4A;
+    const ALL: u32 = 0xf;
+    #[inline(always)]
+    fn splat(x: f32) -> Self {
+        Vec4::splat(x)
+    }
+    #[inline(always)]
+    fn block(v: Vec4) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn lt(self, other: Self) -> Self::Mask {
+        self.cmplt(other)
+    }
+    #[inline(always)]
+    fn gt(self, other: Self) -> Self::Mask {
+        self.cmpgt(other)
+    }
+    #[inline(always)]
+    fn le(self, other: Self) -> Self::Mask {
+        self.cmple(other)
+    }
+    #[inline(always)]
+    fn eq(self, other: Self) -> Self::Mask {
+        self.cmpeq(other)
+    }
+    #[inline(always)]
+    fn ne(self, other: Self) -> Self::Mask {
+        self.cmpne(other)
+    }
+    #[inline(always)]
+    fn finite(self) -> Self::Mask {
+        self.is_finite_mask()
+    }
+    #[inline(always)]
+    fn bits(m: Self::Mask) -> u32 {
+        m.bitmask()
+    }
 }
 
 /// The lanes set in `bits`, lowest first.
@@ -523,41 +697,65 @@ fn set_bits(mut bits: u32) -> impl Iterator<Item = usize> {
 /// is alpha-masked.
 #[inline(always)]
 fn block_test(sr: &ShearedRay, q: &Quad, tmax: f32, masked: u32) -> BlockHits {
-    let (o, s) = (sr.origin, sr.shear);
-    let (sx, sy, sz) = (Vec4::splat(s.x), Vec4::splat(s.y), Vec4::splat(s.z));
-    let tr = |v: &[Vec4; 3]| {
-        let p = [
-            v[0] - Vec4::splat(o.x),
-            v[1] - Vec4::splat(o.y),
-            v[2] - Vec4::splat(o.z),
-        ];
-        let (x, y, z) = match sr.kz {
-            0 => (p[1], p[2], p[0]),
-            1 => (p[2], p[0], p[1]),
-            _ => (p[0], p[1], p[2]),
-        };
-        (x + sx * z, y + sy * z, z * sz)
+    let s = sr.shear;
+    let shear = [Vec4::splat(s.x), Vec4::splat(s.y), Vec4::splat(s.z)];
+    block_test_in(sr.origin, sr.kz, shear, q, Vec4::splat(tmax), masked)
+}
+
+/// A vertex of a block's four triangles (`v`: x, y, z) relative to the rays' origin `o`,
+/// permuted so that axis `kz` becomes z, and sheared by `[sx, sy, sz]`. (A function, not a
+/// closure: a closure is not inlined for certain, and `wide`'s lanes need it inlined.)
+#[inline(always)]
+fn sheared<L: BlockLanes>(v: &[Vec4; 3], o: Vec3A, kz: usize, [sx, sy, sz]: [L; 3]) -> (L, L, L) {
+    let p = [
+        L::block(v[0]) - L::splat(o.x),
+        L::block(v[1]) - L::splat(o.y),
+        L::block(v[2]) - L::splat(o.z),
+    ];
+    let (x, y, z) = match kz {
+        0 => (p[1], p[2], p[0]),
+        1 => (p[2], p[0], p[1]),
+        _ => (p[0], p[1], p[2]),
     };
-    let (p0, p1, p2) = (tr(&q.v[0]), tr(&q.v[1]), tr(&q.v[2]));
+    (x + sx * z, y + sy * z, z * sz)
+}
+
+/// [`block_test`] in lanes `L`, for rays from `o` whose largest direction component is
+/// along axis `kz`, with each lane's shear and `tmax`; `masked` has a bit for each lane.
+#[inline(always)]
+fn block_test_in<L: BlockLanes>(
+    o: Vec3A,
+    kz: usize,
+    [sx, sy, sz]: [L; 3],
+    q: &Quad,
+    tmax: L,
+    masked: u32,
+) -> BlockHits<L> {
+    let s = [sx, sy, sz];
+    let (p0, p1, p2) = (
+        sheared(&q.v[0], o, kz, s),
+        sheared(&q.v[1], o, kz, s),
+        sheared(&q.v[2], o, kz, s),
+    );
     let e0 = p1.0 * p2.1 - p1.1 * p2.0;
     let e1 = p2.0 * p0.1 - p2.1 * p0.0;
     let e2 = p0.0 * p1.1 - p0.1 * p1.0;
-    let zero = Vec4::ZERO;
-    let negative = e0.cmplt(zero) | e1.cmplt(zero) | e2.cmplt(zero);
-    let positive = e0.cmpgt(zero) | e1.cmpgt(zero) | e2.cmpgt(zero);
-    let on_edge = (e0.cmpeq(zero) | e1.cmpeq(zero) | e2.cmpeq(zero)).bitmask();
-    let inside = !(negative & positive).bitmask() & 0xf;
+    let zero = L::splat(0.0);
+    let negative = e0.lt(zero) | e1.lt(zero) | e2.lt(zero);
+    let positive = e0.gt(zero) | e1.gt(zero) | e2.gt(zero);
+    let on_edge = L::bits(e0.eq(zero) | e1.eq(zero) | e2.eq(zero));
+    let inside = !L::bits(negative & positive) & L::ALL;
     let det = e0 + e1 + e2;
-    let inv_det = Vec4::ONE / det;
+    let inv_det = L::splat(1.0) / det;
     let (b0, b1, b2) = (e0 * inv_det, e1 * inv_det, e2 * inv_det);
     let t = b0 * p0.2 + b1 * p1.2 + b2 * p2.2;
     let delta_t = t_error([p0, p1, p2], [b0, b1, b2], inv_det);
     // Lanes whose values are all finite: there `max` and the comparisons agree with the
     // scalar test's; the others go to it.
-    let finite = (t.is_finite_mask() & delta_t.is_finite_mask()).bitmask();
-    let live = det.cmpne(zero).bitmask() & t.cmple(Vec4::splat(tmax)).bitmask();
-    let near_zero = !(t.cmpgt(delta_t) | t.cmplt(-delta_t)).bitmask();
+    let finite = L::bits(t.finite() & delta_t.finite());
+    let live = L::bits(det.ne(zero)) & L::bits(t.le(tmax));
+    let near_zero = !L::bits(t.gt(delta_t) | t.lt(-delta_t));
     let rest = on_edge | (inside & (masked | ((!finite | near_zero) & live)));
-    let hit = inside & !rest & live & t.cmpgt(delta_t).bitmask();
+    let hit = inside & !rest & live & L::bits(t.gt(delta_t));
     BlockHits { t, hit, rest }
 }
