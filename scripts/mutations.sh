@@ -60,6 +60,8 @@ declare -A TESTS=(
   [gather-search-uncounted]="hardening::gathering_counts"
   [checkpoint-written-whole]="lib:checkpoint::"
   [checkpoint-read-whole]="lib:checkpoint::"
+  [wide-pair-one-shear]="lib:accel::"
+  [wide-boxes-one-child]="lib:accel::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -72,7 +74,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
-  checkpoint-written-whole checkpoint-read-whole)
+  checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
