@@ -273,6 +273,9 @@ pub fn trace_strata(
                 rays.origin,
                 dirs,
             );
+            for hit in hits.iter().flatten() {
+                frame.geometry(hit.motion).prefetch(hit.triangle as usize);
+            }
             for ((s, dir), hit) in strata.into_iter().zip(dirs).zip(hits) {
                 if let (Some(s), Some(dir)) = (s, dir) {
                     out[s as usize] = GatherHit::new(frame, hit, rays.origin, dir);
