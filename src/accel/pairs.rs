@@ -349,31 +349,32 @@ impl PairTree {
         active: u32,
         walk: impl FourRays,
     ) -> [Option<(f32, u32)>; 4] {
-        let mut best: [Option<(f32, u32)>; 4] = [None; 4];
         let Some((root_box, root)) = &self.root else {
-            return best;
+            return [None; 4];
         };
-        let mut tmax = rays.map(|r| r.tmax);
+        let mut found = Found4 {
+            tree: self,
+            g,
+            srs,
+            tmax: rays.map(|r| r.tmax),
+            best: [None; 4],
+        };
         let active = (0..4)
-            .filter(|&i| active & (1 << i) != 0 && root_box.intersect_ray(&rays[i]) < tmax[i])
+            .filter(|&i| active & (1 << i) != 0 && root_box.intersect_ray(&rays[i]) < found.tmax[i])
             .fold(0u32, |m, i| m | 1 << i);
-        let leaf =
-            |link: Link, lanes: u32, tmax: &mut [f32; 4], best: &mut [Option<(f32, u32)>; 4]| {
-                walk.leaf(self, g, srs, link, lanes, tmax, best)
-            };
         if active == 0 {
-            return best;
+            return found.best;
         }
         if root.count > 0 {
-            leaf(*root, active, &mut tmax, &mut best);
-            return best;
+            walk.leaf(&mut found, *root, active);
+            return found.best;
         }
         obvhs::fast_stack!(u64, (96, 192), self.max_depth, stack, {
             // The pair to open and the lanes that entered its parent's box.
             let (mut current, mut lanes) = (root.index, active);
             loop {
                 let p = &self.pairs[current as usize];
-                let entered = walk.enter(p, Vec4::from_array(tmax), lanes);
+                let entered = walk.enter(p, Vec4::from_array(found.tmax), lanes);
                 let mut kids = [(entered[0], p.link[0]), (entered[1], p.link[1])];
                 // The nearer first, for the first lane that enters both.
                 let both = kids[0].0.1 & kids[1].0.1;
@@ -391,7 +392,7 @@ impl PairTree {
                         continue;
                     }
                     if link.count > 0 {
-                        leaf(link, entered, &mut tmax, &mut best);
+                        walk.leaf(&mut found, link, entered);
                     } else {
                         open[n] = (link.index, entered);
                         n += 1;
@@ -411,7 +412,7 @@ impl PairTree {
                 };
             }
         });
-        best
+        found.best
     }
 
     /// Whether any triangle of `g` meets the ray within `ray.tmax`.
@@ -508,19 +509,37 @@ trait FourRays: Copy {
     /// before their `far_limit`.
     fn enter(self, p: &Pair, far_limit: Vec4, lanes: u32) -> [(Vec4, u32); 2];
 
-    /// The rays of `lanes` against `leaf`'s triangles: each lane's nearest hit kept in
-    /// `best` ([`PairTree::keep_nearer`]), its `tmax` shortened.
-    #[allow(clippy::too_many_arguments)] // the walk's state, passed as `closest4` holds it
-    fn leaf(
-        self,
-        tree: &PairTree,
-        g: &Geometry,
-        srs: &[ShearedRay; 4],
-        leaf: Link,
-        lanes: u32,
-        tmax: &mut [f32; 4],
-        best: &mut [Option<(f32, u32)>; 4],
-    );
+    /// The rays of `lanes` against `leaf`'s triangles ([`Found4`]).
+    fn leaf(self, found: &mut Found4, leaf: Link, lanes: u32);
+}
+
+/// What [`PairTree::closest4`]'s leaf tests read and keep: the tree, its geometry and the
+/// four rays; each lane's `tmax`, shortened to its nearest hit so far, and that hit in
+/// `best` ([`PairTree::keep_nearer`]).
+struct Found4<'a> {
+    tree: &'a PairTree,
+    g: &'a Geometry,
+    srs: &'a [ShearedRay; 4],
+    tmax: [f32; 4],
+    best: [Option<(f32, u32)>; 4],
+}
+
+impl Found4<'_> {
+    /// Lane `i`'s ray alone against `leaf`'s triangles, four at a time.
+    #[inline(always)]
+    fn one(&mut self, i: usize, leaf: Link) {
+        let (tree, best) = (self.tree, &mut self.best[i]);
+        tree.leaf_hits(
+            &self.srs[i],
+            self.g,
+            leaf,
+            &mut self.tmax[i],
+            |id, t, tmax| {
+                tree.keep_nearer(best, id, t, tmax);
+                true
+            },
+        );
+    }
 }
 
 /// The test in four SIMD lanes, a child at a time.
@@ -555,22 +574,9 @@ impl<O: Origins> FourRays for Narrow<O> {
     }
 
     #[inline(always)]
-    fn leaf(
-        self,
-        tree: &PairTree,
-        g: &Geometry,
-        srs: &[ShearedRay; 4],
-        leaf: Link,
-        lanes: u32,
-        tmax: &mut [f32; 4],
-        best: &mut [Option<(f32, u32)>; 4],
-    ) {
+    fn leaf(self, found: &mut Found4, leaf: Link, lanes: u32) {
         for i in set_bits(lanes) {
-            let b = &mut best[i];
-            tree.leaf_hits(&srs[i], g, leaf, &mut tmax[i], |id, t, tmax| {
-                tree.keep_nearer(b, id, t, tmax);
-                true
-            });
+            found.one(i, leaf);
         }
     }
 }
@@ -638,6 +644,16 @@ trait BlockLanes:
     fn bits(m: Self::Mask) -> u32;
 }
 
+/// [`BlockLanes`]' comparison `$name` by `Vec4`'s `$cmp`.
+macro_rules! compare {
+    ($name:ident, $cmp:ident) => {
+        #[inline(always)]
+        fn $name(self, other: Self) -> Self::Mask {
+            self.$cmp(other)
+        }
+    };
+}
+
 impl BlockLanes for Vec4 {
     type Mask = glam::BVec4A;
     const ALL: u32 = 0xf;
@@ -649,26 +665,11 @@ impl BlockLanes for Vec4 {
     fn block(v: Vec4) -> Self {
         v
     }
-    #[inline(always)]
-    fn lt(self, other: Self) -> Self::Mask {
-        self.cmplt(other)
-    }
-    #[inline(always)]
-    fn gt(self, other: Self) -> Self::Mask {
-        self.cmpgt(other)
-    }
-    #[inline(always)]
-    fn le(self, other: Self) -> Self::Mask {
-        self.cmple(other)
-    }
-    #[inline(always)]
-    fn eq(self, other: Self) -> Self::Mask {
-        self.cmpeq(other)
-    }
-    #[inline(always)]
-    fn ne(self, other: Self) -> Self::Mask {
-        self.cmpne(other)
-    }
+    compare!(lt, cmplt);
+    compare!(gt, cmpgt);
+    compare!(le, cmple);
+    compare!(eq, cmpeq);
+    compare!(ne, cmpne);
     #[inline(always)]
     fn finite(self) -> Self::Mask {
         self.is_finite_mask()

@@ -1,4 +1,4 @@
-//! [`PairTree::closest4`]'s tests in the eight lanes of AVX2, for rays from one point (a
+//! [`super::PairTree::closest4`]'s tests in the eight lanes of AVX2, for rays from one point (a
 //! record's gather rays): a pair's two boxes against the four rays at once, and a leaf's
 //! blocks against two rays at once. Each lane computes what the four-lane tests compute
 //! (the same IEEE operations on the same operands, none fused), so the hits are the same to
@@ -17,9 +17,8 @@ use std::ops::{Add, BitAnd, BitOr, Div, Mul, Neg, Sub};
 
 use glam::{Vec3A, Vec4};
 
-use super::{BlockLanes, FourRays, Link, Pair, PairTree, ShearedRay, block_test_in, set_bits};
+use super::{BlockLanes, Found4, FourRays, Link, Pair, block_test_in, set_bits};
 use crate::accel::Lanes;
-use crate::geom::Geometry;
 
 /// [`FourRays`] in eight lanes, for rays from `o`.
 #[derive(Clone, Copy)]
@@ -97,50 +96,34 @@ impl FourRays for Wide {
     /// The rays two at a time, where two share the axis their shear makes z (rays through
     /// neighbouring strata nearly always do); a ray left over alone in four lanes.
     #[inline(always)]
-    fn leaf(
-        self,
-        tree: &PairTree,
-        g: &Geometry,
-        srs: &[ShearedRay; 4],
-        leaf: Link,
-        lanes: u32,
-        tmax: &mut [f32; 4],
-        best: &mut [Option<(f32, u32)>; 4],
-    ) {
+    fn leaf(self, found: &mut Found4, leaf: Link, lanes: u32) {
         let mut left = lanes;
         while left != 0 {
             let i = left.trailing_zeros() as usize;
             left &= left - 1;
-            match set_bits(left).find(|&j| srs[j].kz == srs[i].kz) {
+            match set_bits(left).find(|&j| found.srs[j].kz == found.srs[i].kz) {
                 Some(j) => {
                     left &= !(1 << j);
-                    leaf_hits2(tree, g, srs, [i, j], leaf, tmax, best);
+                    leaf_hits2(found, [i, j], leaf);
                 }
-                None => {
-                    let b = &mut best[i];
-                    tree.leaf_hits(&srs[i], g, leaf, &mut tmax[i], |id, t, tmax| {
-                        tree.keep_nearer(b, id, t, tmax);
-                        true
-                    });
-                }
+                None => found.one(i, leaf),
             }
         }
     }
 }
 
 /// `leaf`'s triangles against the rays of lanes `i` and `j` (one origin, one `kz`), each
-/// block tested for both at once: each ray's hits are those [`PairTree::leaf_hits`] finds
+/// block tested for both at once: each ray's hits are those [`super::PairTree::leaf_hits`] finds
 /// for it, kept in `best` in the same order.
 #[inline(always)]
-fn leaf_hits2(
-    tree: &PairTree,
-    g: &Geometry,
-    srs: &[ShearedRay; 4],
-    [i, j]: [usize; 2],
-    leaf: Link,
-    tmax: &mut [f32; 4],
-    best: &mut [Option<(f32, u32)>; 4],
-) {
+fn leaf_hits2(found: &mut Found4, [i, j]: [usize; 2], leaf: Link) {
+    let Found4 {
+        tree,
+        g,
+        srs,
+        tmax,
+        best,
+    } = found;
     let (a, b) = (&srs[i], &srs[j]);
     let shear = [
         W8::halves(a.shear.x, b.shear.x),
