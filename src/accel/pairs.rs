@@ -97,7 +97,8 @@ pub(super) struct PairTree {
     /// Bit `i` set where the triangle in slot `i` is alpha-masked.
     masked: Vec<u64>,
     max_depth: usize,
-    /// Whether [`PairTree::closest4`] tests boxes with AVX2 ([`Wide`]): where the CPU has it.
+    /// Whether [`PairTree::closest4`] tests rays from one point in AVX2's eight lanes
+    /// ([`Wide`]): where the CPU has it.
     wide: bool,
 }
 
@@ -323,8 +324,8 @@ impl PairTree {
         }
     }
 
-    /// [`PairTree::closest4`] for rays from one point, each pair's two boxes tested in
-    /// the eight lanes of AVX2 ([`Wide`]).
+    /// [`PairTree::closest4`] for rays from one point, its boxes and leaves tested in the
+    /// eight lanes of AVX2 ([`Wide`]).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     fn closest4_wide(
@@ -339,7 +340,7 @@ impl PairTree {
         self.closest4_from(g, rays, srs, active, Wide::new(o, inv))
     }
 
-    /// [`PairTree::closest4`], each pair's boxes tested by `boxes`.
+    /// [`PairTree::closest4`], each pair's boxes and each leaf's triangles tested by `walk`.
     #[inline(always)]
     fn closest4_from(
         &self,
