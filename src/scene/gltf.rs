@@ -215,7 +215,7 @@ pub fn open_limited(file: &Path, at: &str, limit: u64) -> Result<(std::fs::File,
     Ok((f, meta.len()))
 }
 
-/// Reads `file` (element `at` of glTF file `path`), which must be a regular file of at most
+/// Reads `file` (element `at` of the input), which must be a regular file of at most
 /// `limit` bytes: a device such as `/dev/zero` or an oversized file is refused before it is
 /// read, and reading stops at the limit should the file grow meanwhile.
 pub fn read_limited(file: &Path, at: &str, limit: u64) -> Result<Vec<u8>> {
