@@ -124,6 +124,19 @@ impl Geometry {
     }
 }
 
+/// Asks the CPU to bring the cache line at `p` into its cache, for a read soon (a hint: `p`
+/// need not point into anything; nothing where the CPU has no such instruction).
+#[inline(always)]
+pub fn prefetch_line<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing and faults on no address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
 /// An orthonormal basis around `n` (Duff et al. 2017).
 pub fn basis(n: Vec3) -> (Vec3, Vec3) {
     let s = 1.0f32.copysign(n.z);

@@ -17,7 +17,7 @@ use std::ops::{Add, BitAnd, BitOr, Div, Mul, Neg, Sub};
 
 use glam::{Vec3A, Vec4};
 
-use super::{BlockLanes, Found4, FourRays, Link, Pair, block_test_in, set_bits};
+use super::{BlockLanes, Entered, Found4, FourRays, Link, Pair, block_test_in, set_bits};
 use crate::accel::Lanes;
 
 /// [`FourRays`] in eight lanes, for rays from `o`.
@@ -48,12 +48,15 @@ impl Wide {
 /// the four lanes subtract each), then each child's near plane in its four lanes and its far
 /// plane in the same, times the rays' reciprocals `inv`.
 #[inline(always)]
-fn slab(planes: Vec4, o: f32, inv: __m256) -> (__m256, __m256) {
+fn slab(planes: &Vec4, o: f32, inv: __m256) -> (__m256, __m256) {
     // SAFETY: called only by `Wide`'s tests (see `W8`).
     unsafe {
-        let d = _mm256_castps128_ps256((planes - Vec4::splat(o)).into());
-        let lo = _mm256_permutevar8x32_ps(d, _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1));
-        let hi = _mm256_permutevar8x32_ps(d, _mm256_setr_epi32(2, 2, 2, 2, 3, 3, 3, 3));
+        // The four planes in each half (a load, no shuffle across the halves), less the
+        // origin; then within each half the child's plane in every lane.
+        let four = _mm256_broadcast_ps(&(*planes).into());
+        let d = _mm256_sub_ps(four, _mm256_set1_ps(o));
+        let lo = _mm256_permutevar_ps(d, _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1));
+        let hi = _mm256_permutevar_ps(d, _mm256_setr_epi32(2, 2, 2, 2, 3, 3, 3, 3));
         (_mm256_mul_ps(lo, inv), _mm256_mul_ps(hi, inv))
     }
 }
@@ -61,12 +64,12 @@ fn slab(planes: Vec4, o: f32, inv: __m256) -> (__m256, __m256) {
 impl FourRays for Wide {
     /// Both children at once: lanes 0–3 the first child's for the four rays, 4–7 the second's.
     #[inline(always)]
-    fn enter(self, p: &Pair, far_limit: Vec4, lanes: u32) -> [(Vec4, u32); 2] {
+    fn enter(self, p: &Pair, far_limit: Vec4, lanes: u32) -> Entered {
         // SAFETY: a `Wide` is made only where the CPU has AVX2 (`PairTree::new`).
         unsafe {
-            let (x0, x1) = slab(p.x, self.o.x, self.inv[0]);
-            let (y0, y1) = slab(p.y, self.o.y, self.inv[1]);
-            let (z0, z1) = slab(p.z, self.o.z, self.inv[2]);
+            let (x0, x1) = slab(&p.x, self.o.x, self.inv[0]);
+            let (y0, y1) = slab(&p.y, self.o.y, self.inv[1]);
+            let (z0, z1) = slab(&p.z, self.o.z, self.inv[2]);
             let near = _mm256_max_ps(
                 _mm256_max_ps(_mm256_min_ps(x0, x1), _mm256_min_ps(y0, y1)),
                 _mm256_min_ps(z0, z1),
@@ -83,13 +86,14 @@ impl FourRays for Wide {
                 _mm256_cmp_ps::<_CMP_LT_OS>(near, W8::twice(far_limit).0),
             );
             let bits = _mm256_movemask_ps(hit) as u32;
-            [
-                (Vec4::from(_mm256_castps256_ps128(near)), bits & lanes),
-                (
-                    Vec4::from(_mm256_extractf128_ps::<1>(near)),
-                    (bits >> 4) & lanes,
-                ),
-            ]
+            let (near0, near1) = (
+                _mm256_castps256_ps128(near),
+                _mm256_extractf128_ps::<1>(near),
+            );
+            Entered {
+                lanes: [bits & lanes, (bits >> 4) & lanes],
+                second_nearer: _mm_movemask_ps(_mm_cmplt_ps(near1, near0)) as u32,
+            }
         }
     }
 
