@@ -83,20 +83,14 @@ impl Geometry {
     /// a hit whose surface point is made soon (a hint; nothing where the CPU has none).
     #[inline]
     pub fn prefetch(&self, i: usize) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-            let lines = |p: *const u8, len: usize| {
-                // SAFETY: a prefetch reads nothing and faults on no address.
-                unsafe {
-                    _mm_prefetch::<_MM_HINT_T0>(p.cast());
-                    _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(len - 1).cast());
-                }
-            };
-            if let (Some(t), Some(s)) = (self.triangles.get(i), self.shading.get(i)) {
-                lines(std::ptr::from_ref(t).cast(), size_of_val(t));
-                lines(std::ptr::from_ref(s).cast(), size_of_val(s));
-            }
+        // Each record's first and last line (neither spans more than two).
+        let lines = |p: *const u8, len: usize| {
+            prefetch_line(p);
+            prefetch_line(p.wrapping_add(len - 1));
+        };
+        if let (Some(t), Some(s)) = (self.triangles.get(i), self.shading.get(i)) {
+            lines(std::ptr::from_ref(t).cast(), size_of_val(t));
+            lines(std::ptr::from_ref(s).cast(), size_of_val(s));
         }
     }
 

@@ -5,9 +5,9 @@
 //! the bit. Used only where the CPU has AVX2 (`PairTree::new`), which the x86-64 baseline
 //! that the crate is built for does not include. On Sponza's gather rays (`cargo bench
 //! --bench rays`, `slow_build`, three alternating rounds, at `356019c`) the four-lane walk
-//! traced 2.60–2.74 M rays a second, the box test in eight lanes 2.69–2.76 M, and both tests in eight lanes
-//! 2.68–2.89 M (5 % more on average); in a render at the final preset, the gather stage of
-//! Sponza's frame 2 took 0.69–0.71 s against 0.77 s.
+//! traced 2.60–2.74 M rays a second, the box test in eight lanes 2.69–2.76 M, and both
+//! tests in eight lanes 2.68–2.89 M (5 % more on average); in a render at the final preset,
+//! the gather stage of Sponza's frame 2 took 0.69–0.71 s against 0.77 s.
 //!
 //! Written with `std::arch` rather than a portable SIMD crate: those pick their instructions
 //! when the crate is compiled, for the baseline, and so would not use AVX2 here.
