@@ -12,6 +12,12 @@
 //!
 //! `cargo bench --bench rays -- benches/sponza/job.json`
 //!
+//! Last, the gather's whole per-record work on the tree renders use: `gather::trace_strata`
+//! from each of the grid's points (directions, the four-ray trace and every hit's surface
+//! point) at the production preset's 12 × 36 strata and the final preset's 30 × 60, with a
+//! digest of every hit's point, so that the stage's cost beside the trace is measured too.
+//! `--gather` runs this part alone.
+//!
 //! With `--dump DIR` it also writes the scene's triangles, the gather rays, their 2 × 2
 //! packets and `Accel::closest`'s hits to `DIR` (little-endian raw arrays; layout in
 //! `benches/embree_trace.c`), for that program to trace the same rays with Embree.
@@ -21,7 +27,7 @@ use std::time::Instant;
 
 use anchorage::accel::{Accel, ShearedRay, StaticBvh, canonical, hit_distance};
 use anchorage::cache::CacheParams;
-use anchorage::cache::gather::StratumRays;
+use anchorage::cache::gather::{StratumRays, trace_strata};
 use anchorage::geom::{Geometry, Motion};
 use anchorage::scene::FrameScene;
 use glam::Vec3;
@@ -88,10 +94,13 @@ fn triangle_words(g: &Geometry) -> impl Iterator<Item = [u8; 4]> + '_ {
 fn main() {
     let mut path = "benches/sponza/job.json".to_string();
     let mut dump_dir = None;
+    let mut gather_only = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         if a == "--dump" {
             dump_dir = args.next().map(std::path::PathBuf::from);
+        } else if a == "--gather" {
+            gather_only = true;
         } else if !a.starts_with("--") {
             path = a;
         }
@@ -116,6 +125,9 @@ fn main() {
         ("very_slow_build", BvhBuildParams::very_slow_build()),
     ];
     for (name, params) in presets {
+        if gather_only {
+            break;
+        }
         let start = Instant::now();
         let bvh = StaticBvh::build_with(&base.geometry, params);
         let build = start.elapsed().as_secs_f64();
@@ -269,6 +281,58 @@ fn main() {
             rate(rays.len(), ours),
             rate(rays.len(), fours),
             rate(rays.len(), occluded),
+        );
+    }
+    gather_stage(&scene, time, aspect, &base);
+}
+
+/// `trace_strata` from the camera's first hits on the grid, at each preset's strata, best
+/// of three, with a digest of every hit's point and shading normal (module doc). Each
+/// point's hits are dropped once digested, as a render drops a part's.
+fn gather_stage(
+    scene: &anchorage::scene::Scene,
+    time: f32,
+    aspect: f32,
+    statics: &anchorage::scene::StaticSet,
+) {
+    let (fs, _) = scene.evaluate(time, aspect, statics);
+    let points: Vec<_> = (0..24 * 40)
+        .filter_map(|i| {
+            let (px, py) = ((i % 40) as f32 + 0.5, (i / 40) as f32 + 0.5);
+            anchorage::interaction::trace_camera(&fs, px / 40.0, py / 24.0).1
+        })
+        .collect();
+    for strata in [[12, 36], [30, 60]] {
+        let cp = CacheParams {
+            strata,
+            ..CacheParams::default()
+        };
+        let (mut best, mut rays, mut d) = (f64::MAX, 0, 0u64);
+        for _ in 0..3 {
+            (rays, d) = (0, 0);
+            let start = Instant::now();
+            for (i, sp) in points.iter().enumerate() {
+                let hits = trace_strata(&fs, sp, i as u32, &cp);
+                rays += hits.len();
+                d = hits.iter().fold(d, |acc, h| {
+                    let v = h.sp.as_ref().map_or(0, |sp| {
+                        let p = sp.position.to_array().map(f32::to_bits);
+                        let n = sp.ns.to_array().map(f32::to_bits);
+                        (u64::from(p[0] ^ p[1].rotate_left(11) ^ p[2].rotate_left(22)) << 32)
+                            | u64::from(n[0] ^ n[1].rotate_left(11) ^ n[2].rotate_left(22))
+                    });
+                    acc.wrapping_mul(0x100_0000_01b3).wrapping_add(v)
+                });
+            }
+            best = best.min(start.elapsed().as_secs_f64());
+        }
+        println!(
+            "gather::trace_strata, {}×{} strata from {} points: {rays} rays, {:.3} M/s \
+             (digest {d:016x})",
+            strata[0],
+            strata[1],
+            points.len(),
+            rate(rays, best),
         );
     }
 }
