@@ -159,6 +159,8 @@ pub fn render_frame_with(
             t.irradiance_estimation = gs.irradiance_estimation;
             t.attachment = gs.attachment;
             t.integration = gs.integration;
+            t.placement = gs.placement;
+            t.upkeep = gs.upkeep;
             t.final_gathering = gs.final_gathering;
             t.cache_interpolation = gs.cache_interpolation;
             t.depth_maps = gs.depth_maps;

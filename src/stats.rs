@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 /// methods is split among `direct_lighting`, `cache_interpolation`, `final_gathering` and
 /// `irradiance_estimation` in proportion to the thread seconds its workers spent at each
 /// (per row, summed over threads), so the rows are seconds per frame that add up to about
-/// `total` (the rest: scene evaluation, BVHs, output, bookkeeping between phases).
+/// `total` (the rest: the static BVH, output, and what little lies between the spans).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Timings {
     /// Evaluating animation, skinning and morphing of dynamic prims.
@@ -41,6 +41,17 @@ pub struct Timings {
     /// row of its own, so that final gathering is the rays' tracing.
     #[serde(default)]
     pub integration: f64,
+    /// The cached methods: deciding where new records go — tracing the pixel centres and
+    /// the camera samples' lookup points, testing which of them the cache covers, and
+    /// adding the new records to its grids with their radii clamped by their neighbours'
+    /// (not their gathers, which count in the rows above).
+    #[serde(default)]
+    pub placement: f64,
+    /// The cached methods' bookkeeping between the stages: dropping expired records,
+    /// assembling the film, the Weber rule's tally and removals (§4.3); `anchors` also
+    /// counts the strata that link each anchor and collects or rebalances the anchors.
+    #[serde(default)]
+    pub upkeep: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     /// Detecting strata that may see dynamic prims (`anchors`, paper §3.2).

@@ -142,7 +142,8 @@ pub fn estimate_all(
         .collect()
 }
 
-/// Seconds and rays spent gathering, split as in the paper's Table 1.
+/// Seconds and rays spent updating the cache, split as in the paper's Table 1, with the
+/// rows it has no name for (`placement`, `upkeep`).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct GatherTimings {
     /// Tracing gather rays.
@@ -156,6 +157,15 @@ pub struct GatherTimings {
     pub integration: f64,
     /// `anchors`: linking gather hits to anchors (Pseudocode 1's search and new anchors).
     pub attachment: f64,
+    /// Deciding where new records go ([`crate::cache::IrradianceCache::place`]): the
+    /// coverage tests at the pixel centres' grids and at the camera samples, and adding the
+    /// records to the grids with their radii clamped by their neighbours'; not their
+    /// gathers, which count in the rows above.
+    pub placement: f64,
+    /// The cache's bookkeeping between the stages: dropping expired records and, for
+    /// `anchors`, counting the strata that link each anchor and collecting or rebalancing
+    /// the anchors.
+    pub upkeep: f64,
     pub rays: u64,
 }
 
@@ -165,6 +175,13 @@ impl GatherTimings {
     pub fn linked(&mut self, seconds: f64) {
         self.irradiance_estimation -= seconds;
         self.attachment += seconds;
+    }
+
+    /// The seconds counted so far in the rows a batch of records' gathers fall into (final
+    /// gathering, irradiance estimation, attachment, integration): what a span that gathers
+    /// takes off its own time to find its placement's.
+    pub fn gathering(&self) -> f64 {
+        self.final_gathering + self.irradiance_estimation + self.attachment + self.integration
     }
 
     /// Moves `seconds` of integrating records' strata, timed inside a phase that counted as

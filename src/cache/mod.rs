@@ -693,6 +693,8 @@ impl IrradianceCache {
         timings: &mut GatherTimings,
     ) {
         debug_assert_eq!(centres.size(), (width, height));
+        // Placement's own time: the span less its records' gathers.
+        let (start, gathered) = (std::time::Instant::now(), timings.gathering());
         let coarsest = 16u32;
         let mut spacing = coarsest;
         // The records of earlier frames that see no dynamic prim cover to the slack
@@ -751,6 +753,7 @@ impl IrradianceCache {
             &mut blocking,
         );
         self.touch(&blocking, frame_number);
+        timings.placement += start.elapsed().as_secs_f64() - (timings.gathering() - gathered);
     }
 
     /// Records for the `samples` (pixel index, surface point; in pixel order) that no record

@@ -48,7 +48,7 @@ pub fn table(r: &Report) -> String {
     }
     s += "RMS*% and ind.err*%: the same errors less the reference's own noise (its per-pixel variance)\n";
     s += &format!(
-        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8} {:>8}\n",
+        "\nmedian seconds per stage (paper Table 1), {} worker threads\n{:<40} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>14} {:>8} {:>8} {:>8}\n",
         rayon::current_num_threads(),
         "method/preset",
         "photons",
@@ -59,6 +59,8 @@ pub fn table(r: &Report) -> String {
         "interp",
         "direct",
         "visib.",
+        "place",
+        "upkeep",
         "other",
         "total",
         "gather rays/s/core",
@@ -69,7 +71,7 @@ pub fn table(r: &Report) -> String {
     for x in &r.results {
         let t = &x.table1_s;
         s += &format!(
-            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8} {:>8}\n",
+            "{:<40} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>14} {:>8} {:>8} {:>8}\n",
             x.label,
             t.photon_tracing,
             t.irradiance_estimation,
@@ -79,6 +81,8 @@ pub fn table(r: &Report) -> String {
             t.cache_interpolation,
             t.direct_lighting,
             t.visibility,
+            t.placement,
+            t.upkeep,
             t.other,
             t.total,
             x.gather_rays_per_s_per_core
@@ -121,8 +125,8 @@ mod tests {
         assert_eq!(
             lines[7..9],
             [
-                "method/preset                             photons  irr.est   attach   integr   gather   interp   direct   visib.    other    total gather rays/s/core  reshot%    flag%  vis/10k",
-                "anchors/production photons=10000            0.010    0.020    0.030    0.005    0.100    0.010    0.020    0.000    0.040    0.200         2.00 M      n/a      n/a      n/a",
+                "method/preset                             photons  irr.est   attach   integr   gather   interp   direct   visib.    place   upkeep    other    total gather rays/s/core  reshot%    flag%  vis/10k",
+                "anchors/production photons=10000            0.010    0.020    0.030    0.005    0.100    0.010    0.020    0.000    0.015    0.005    0.020    0.200         2.00 M      n/a      n/a      n/a",
             ]
         );
     }

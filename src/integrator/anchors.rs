@@ -325,9 +325,11 @@ pub fn update(
     relink_photons(set, pm, &at, &nearest);
     timings.irradiance_estimation += t.elapsed().as_secs_f64();
 
+    let t = Instant::now();
     let before = cache.len();
     cache.expire(ctx.frame, cp.max_age);
     let removed = cache.len() < before;
+    timings.upkeep += t.elapsed().as_secs_f64();
 
     let t = Instant::now();
     let flags = flag_strata(ctx.scene, cache, cp.strata, vis)?;
@@ -358,6 +360,7 @@ pub fn update(
 
     place_records(ctx, &att, set, cache, cp, samples, centres, timings);
 
+    let t = Instant::now();
     let refs = anchor_references(set, cache);
     if removed {
         let referenced: Vec<bool> = refs.iter().map(|&c| c > 0).collect();
@@ -366,6 +369,7 @@ pub fn update(
         st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
     }
     st.reuse_histogram = reuse_histogram(&refs);
+    timings.upkeep += t.elapsed().as_secs_f64();
     st.anchors = set.live_count() as u64;
     st.anchors_created = set.take_created();
     Ok(st)
@@ -427,9 +431,11 @@ pub fn relight(
     let todo = strata_to_reshoot(ctx.scene, cache, &none, cp);
     st.rays_reshot = reshoot_and_update(ctx, &att, set, cache, todo, &changed, cp, true, timings);
 
+    let t = Instant::now();
     let refs = anchor_references(set, cache);
     st.rebalanced = set.rebalance_if_needed(ap.rebalance as f64);
     st.reuse_histogram = reuse_histogram(&refs);
+    timings.upkeep += t.elapsed().as_secs_f64();
     st.anchors = set.live_count() as u64;
     st.anchors_created = set.take_created();
     st

@@ -107,6 +107,13 @@ pub struct CachedStats {
     pub attachment: f64,
     /// Integrating records' strata ([`crate::cache::GatherTimings::integration`]).
     pub integration: f64,
+    /// Deciding where new records go: tracing the pixel centres and the camera samples'
+    /// lookup points, and [`crate::cache::GatherTimings::placement`].
+    pub placement: f64,
+    /// [`crate::cache::GatherTimings::upkeep`], and after the shading pass: assembling the
+    /// film from its rows (and watch mode's log of its rays), marking the records it read
+    /// as used, and the Weber rule's tally and removals (§4.3).
+    pub upkeep: f64,
     pub final_gathering: f64,
     pub cache_interpolation: f64,
     /// Answering anchor bucketing's depth queries (§5.1), wherever visibility runs.
@@ -236,7 +243,9 @@ pub fn render_in_bands(
     // What the camera sees at the pixel centres, traced once for placement, the lookup
     // points and the shading pass; a relight reads the hits its log keeps instead.
     let relight = method == CachedMethod::Anchors && refresh.relight_only;
+    let t = Instant::now();
     let centres = (!relight).then(|| PixelCentres::trace(ctx.scene, ctx.width, ctx.height));
+    st.placement = t.elapsed().as_secs_f64();
     match &centres {
         None => {
             st.anchors = Some(super::anchors::relight(
@@ -250,7 +259,9 @@ pub fn render_in_bands(
             ));
         }
         Some(centres) if method == CachedMethod::Anchors => {
+            let t = Instant::now();
             let samples = lookup_points(ctx, spp, centres);
+            st.placement += t.elapsed().as_secs_f64();
             st.anchors = Some(super::anchors::update(
                 ctx,
                 cache,
@@ -265,7 +276,9 @@ pub fn render_in_bands(
             )?);
         }
         Some(centres) => {
+            let t = Instant::now();
             let samples = lookup_points(ctx, spp, centres);
+            st.placement += t.elapsed().as_secs_f64();
             prepare_brute_force(
                 ctx,
                 cache,
@@ -281,6 +294,8 @@ pub fn render_in_bands(
     st.irradiance_estimation += gt.irradiance_estimation;
     st.attachment = gt.attachment;
     st.integration = gt.integration;
+    st.placement += gt.placement;
+    st.upkeep = gt.upkeep;
     st.rays_shot = gt.rays;
     st.caches = cache.len() as u64;
     st.caches_spot = cache.records.iter().filter(|r| r.spot).count() as u64;
@@ -382,6 +397,7 @@ pub fn render_in_bands(
         wall += t.elapsed().as_secs_f64();
         rows
     };
+    let t = Instant::now();
     let (img, mut rows) = super::film::assemble(ctx.width, ctx.height, rows);
     if let Some(slot) = log_slot.filter(|_| replay.log) {
         let logs = rows.iter_mut().map(|r| std::mem::take(&mut r.log));
@@ -411,6 +427,7 @@ pub fn render_in_bands(
         cache.retire(&removed);
         st.caches_retired = removed.len() as u64;
     }
+    st.upkeep += t.elapsed().as_secs_f64();
     st.uncached_samples = rows.iter().map(|r| r.uncached).sum();
     st.uncached_rays = rows.iter().map(|r| r.uncached_rays).sum();
     st.rays_shot += st.uncached_rays;
@@ -462,8 +479,10 @@ fn prepare_brute_force(
     let mut brute =
         |fp: &[f32], hits: Vec<Vec<GatherHit>>| gather::estimate_all(fp, hits, &radiance);
     // Brute force re-gathers every stratum every frame: no hit is worth keeping.
+    let t = Instant::now();
     cache.dynamic_hits.clear();
     cache.expire(ctx.frame, cp.max_age);
+    gt.upkeep += t.elapsed().as_secs_f64();
     cache.regather(ctx.scene, cp, ctx.frame, &mut brute, gt);
     // Samples no record covers gather on the spot in every frame, as brute force does
     // everywhere: no spot records.
