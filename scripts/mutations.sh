@@ -62,6 +62,8 @@ declare -A TESTS=(
   [checkpoint-read-whole]="lib:checkpoint::"
   [wide-pair-one-shear]="lib:accel::"
   [wide-boxes-one-child]="lib:accel::"
+  [placement-untimed]="gi::uncached_samples_count"
+  [upkeep-untimed]="gi::uncached_samples_count"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -74,7 +76,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   anchors-wide-with-shadow-rays checkpoint-build-unchecked gather-shadow-rays-uncounted
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
-  checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child)
+  checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
+  placement-untimed upkeep-untimed)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
