@@ -68,7 +68,24 @@ fn digest(h: Option<(f32, Motion, u32)>, acc: u64) -> u64 {
     let v = h.map_or(0, |(t, m, i)| {
         (u64::from(t.to_bits()) << 32 | u64::from(i)) ^ (m == Motion::Dynamic) as u64
     });
+    mix(acc, v)
+}
+
+/// `acc` with the word `v` folded in (the digests' step).
+fn mix(acc: u64, v: u64) -> u64 {
     acc.wrapping_mul(0x100_0000_01b3).wrapping_add(v)
+}
+
+/// The camera's first hits through the centres of a 40 × 24 grid over the image, each with
+/// its grid index (the id its record's rays are jittered by).
+fn camera_points(fs: &FrameScene) -> Vec<(u32, anchorage::interaction::SurfacePoint)> {
+    (0..24 * 40u32)
+        .filter_map(|i| {
+            let (px, py) = ((i % 40) as f32 + 0.5, (i / 40) as f32 + 0.5);
+            let sp = anchorage::interaction::trace_camera(fs, px / 40.0, py / 24.0).1?;
+            Some((i, sp))
+        })
+        .collect()
 }
 
 fn rate(n: usize, seconds: f64) -> f64 {
@@ -140,36 +157,30 @@ fn main() {
         // Each point's rays as `Accel::closest4` takes them in the gather: 2 × 2 strata,
         // each lane the ray's index in `rays` (`None`: below the surface or past the grid).
         let mut packets: Vec<(Vec3, [Option<usize>; 4])> = Vec::new();
-        for y in 0..24 {
-            for x in 0..40 {
-                let (px, py) = ((x as f32 + 0.5) / 40.0, (y as f32 + 0.5) / 24.0);
-                let Some(sp) = anchorage::interaction::trace_camera(&fs, px, py).1 else {
-                    continue;
-                };
-                let strata = StratumRays::new(&sp, (y * 40 + x) as u32, &cp);
-                let o = sp.spawn();
-                let first = rays.len();
-                let mut index = [None; 1800];
-                for s in 0..1800 {
-                    let d = strata.dir(s);
-                    if d.dot(sp.ng) > 0.0 {
-                        index[s as usize] = Some(rays.len());
-                        rays.push((o, d));
-                    }
+        for (id, sp) in camera_points(&fs) {
+            let strata = StratumRays::new(&sp, id, &cp);
+            let o = sp.spawn();
+            let first = rays.len();
+            let mut index = [None; 1800];
+            for s in 0..1800 {
+                let d = strata.dir(s);
+                if d.dot(sp.ng) > 0.0 {
+                    index[s as usize] = Some(rays.len());
+                    rays.push((o, d));
                 }
-                let [m, n] = cp.strata;
-                for j in (0..m).step_by(2) {
-                    for k in (0..n).step_by(2) {
-                        let lane = |dj: u32, dk: u32| {
-                            (j + dj < m && k + dk < n)
-                                .then(|| index[((j + dj) * n + k + dk) as usize])
-                                .flatten()
-                        };
-                        packets.push((o, [lane(0, 0), lane(0, 1), lane(1, 0), lane(1, 1)]));
-                    }
-                }
-                debug_assert!(rays[first..].iter().all(|r| r.0 == o));
             }
+            let [m, n] = cp.strata;
+            for j in (0..m).step_by(2) {
+                for k in (0..n).step_by(2) {
+                    let lane = |dj: u32, dk: u32| {
+                        (j + dj < m && k + dk < n)
+                            .then(|| index[((j + dj) * n + k + dk) as usize])
+                            .flatten()
+                    };
+                    packets.push((o, [lane(0, 0), lane(0, 1), lane(1, 0), lane(1, 1)]));
+                }
+            }
+            debug_assert!(rays[first..].iter().all(|r| r.0 == o));
         }
         let short = 0.1 * fs.static_radius();
         if let Some(dir) = dump_dir.take() {
@@ -296,12 +307,7 @@ fn gather_stage(
     statics: &anchorage::scene::StaticSet,
 ) {
     let (fs, _) = scene.evaluate(time, aspect, statics);
-    let points: Vec<_> = (0..24 * 40)
-        .filter_map(|i| {
-            let (px, py) = ((i % 40) as f32 + 0.5, (i / 40) as f32 + 0.5);
-            anchorage::interaction::trace_camera(&fs, px / 40.0, py / 24.0).1
-        })
-        .collect();
+    let points = camera_points(&fs);
     for strata in [[12, 36], [30, 60]] {
         let cp = CacheParams {
             strata,
@@ -311,8 +317,8 @@ fn gather_stage(
         for _ in 0..3 {
             (rays, d) = (0, 0);
             let start = Instant::now();
-            for (i, sp) in points.iter().enumerate() {
-                let hits = trace_strata(&fs, sp, i as u32, &cp);
+            for (id, sp) in &points {
+                let hits = trace_strata(&fs, sp, *id, &cp);
                 rays += hits.len();
                 d = hits.iter().fold(d, |acc, h| {
                     let v = h.sp.as_ref().map_or(0, |sp| {
@@ -321,7 +327,7 @@ fn gather_stage(
                         (u64::from(p[0] ^ p[1].rotate_left(11) ^ p[2].rotate_left(22)) << 32)
                             | u64::from(n[0] ^ n[1].rotate_left(11) ^ n[2].rotate_left(22))
                     });
-                    acc.wrapping_mul(0x100_0000_01b3).wrapping_add(v)
+                    mix(acc, v)
                 });
             }
             best = best.min(start.elapsed().as_secs_f64());
