@@ -519,7 +519,7 @@ mod tests {
     }
 
     /// The grids pass over the records whose spheres cannot hold a point without reading
-    /// them (`grid::Entry`): every clamped radius, every lookup and every coverage test
+    /// them (`grid::Block`): every clamped radius, every lookup and every coverage test
     /// equals a pass over all the records, at points on the edges of their spheres too.
     #[test]
     fn lookups_and_clamps_equal_a_pass_over_every_record() {

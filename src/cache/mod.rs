@@ -135,7 +135,7 @@ pub struct IrradianceCache {
 
 /// Bytes of the grid entries of one record: up to eight cells of each of the two grids
 /// hold it.
-const CELL_ENTRIES: usize = 2 * 8 * size_of::<grid::Entry>();
+const CELL_ENTRIES: usize = 2 * 8 * grid::ENTRY_BYTES;
 
 /// The points of `uncovered` (each with the enclosed records valid there,
 /// [`IrradianceCache::enclosed_at`]) that no enclosed record stands in for; the enclosed
