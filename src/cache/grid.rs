@@ -153,8 +153,12 @@ impl Cell {
 
     /// Keeps the entries whose index `keep` keeps (and may change), in order, in place.
     fn retain(&mut self, mut keep: impl FnMut(&mut u32) -> bool) {
+        // The entries before the first dropped one stay where they are.
         let mut kept = 0;
-        for k in 0..self.len {
+        while kept < self.len && keep(&mut self.blocks[kept / LANES].index[kept % LANES]) {
+            kept += 1;
+        }
+        for k in kept + 1..self.len {
             let mut e = self.blocks[k / LANES].get(k % LANES);
             if keep(&mut e.index) {
                 self.blocks[kept / LANES].set(kept % LANES, e);
