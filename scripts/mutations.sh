@@ -62,6 +62,7 @@ declare -A TESTS=(
   [checkpoint-read-whole]="lib:checkpoint::"
   [wide-pair-one-shear]="lib:accel::"
   [wide-boxes-one-child]="lib:accel::"
+  [grid-last-lane-skipped]="lib:cache::"
   [placement-untimed]="gi::uncached_samples_count"
   [upkeep-untimed]="gi::uncached_samples_count"
 )
@@ -77,7 +78,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
-  placement-untimed upkeep-untimed)
+  grid-last-lane-skipped placement-untimed upkeep-untimed)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
