@@ -86,8 +86,8 @@ impl Block {
         self.index[lane] = e.index;
     }
 
-    /// The lanes whose `x` may lie within `factor` times the entry's radius of its centre,
-    /// as bits. A superset: the squared bound has a relative margin of 10⁻³, far above the
+    /// Bit `l` set where `x` may lie within `factor` times lane `l`'s radius of its centre.
+    /// A superset: the squared bound has a relative margin of 10⁻³, far above the
     /// rounding of the tests the callers make (a distance under `factor` times a radius no
     /// larger than the entry's, computed in f32).
     #[inline(always)]
