@@ -442,6 +442,13 @@ mod tests {
         let check = |cell: &Cell, list: &[Entry]| {
             assert_eq!(cell.entries().collect::<Vec<_>>(), list);
             assert_eq!(cell.blocks.len(), list.len().div_ceil(LANES));
+            for k in list.len()..cell.blocks.len() * LANES {
+                let e = cell.blocks[k / LANES].get(k % LANES);
+                assert!(
+                    e.index == u32::MAX && e.radius.is_nan(),
+                    "lane {k} not empty"
+                );
+            }
             for x in [Vec3::ZERO, Vec3::new(1.0, 3.0, -2.0), Vec3::splat(-4.0)] {
                 for factor in [0.5, 1.0, 2.0] {
                     let mut found = Vec::new();
