@@ -305,28 +305,21 @@ impl RecordGrid {
         });
     }
 
-    /// Calls `f` with the records whose sphere, `factor` times the radius they were put in
-    /// with, may contain `x` ([`Block::may_hold`]), level by level, each level's in index
-    /// order (a record sits at one level), until `f` returns true; returns whether it did.
-    /// A lookup reads one cell per level in use.
+    /// Calls `pred` with the records of [`RecordGrid::with_candidates`] ([`Block::may_hold`]),
+    /// in the same order, read in place, until it returns true; returns whether it did. A
+    /// lookup reads one cell per level in use.
     #[inline]
-    fn find(&self, x: Vec3, factor: f32, mut f: impl FnMut(u32) -> bool) -> bool {
-        self.levels.iter().any(|&(level, inverse)| {
-            self.cells
-                .get(&Self::cell_at(level, inverse, x))
-                .is_some_and(|cell| cell.find(x, factor, &mut f))
-        })
-    }
-
-    /// Whether `pred` holds for one of the records of [`RecordGrid::with_candidates`], in
-    /// the same order, read in place and only up to the first that passes.
     pub(super) fn any_candidate(
         &self,
         x: Vec3,
         factor: f32,
-        pred: impl FnMut(u32) -> bool,
+        mut pred: impl FnMut(u32) -> bool,
     ) -> bool {
-        self.find(x, factor, pred)
+        self.levels.iter().any(|&(level, inverse)| {
+            self.cells
+                .get(&Self::cell_at(level, inverse, x))
+                .is_some_and(|cell| cell.find(x, factor, &mut pred))
+        })
     }
 
     /// Calls `f` with the records whose sphere, `factor` times the radius they were put in
@@ -346,7 +339,7 @@ impl RecordGrid {
         }
         let fill = |out: &mut Vec<u32>| {
             out.clear();
-            self.find(x, factor, |i| {
+            self.any_candidate(x, factor, |i| {
                 out.push(i);
                 false
             });
@@ -415,11 +408,17 @@ mod tests {
         };
         grid.insert(0, Vec3::ZERO, 0.0);
         for (i, r) in [1e-41, 1e-44, 1e-30].into_iter().enumerate() {
-            grid.insert(i as u32 + 1, Vec3::new(r, 0.0, -r), r);
+            let at = Vec3::new(r, 0.0, -r);
+            let (_, lo, hi) = grid.span(at, r);
+            assert!(
+                (0..3).all(|k| i64::from(hi[k]) - i64::from(lo[k]) <= 2),
+                "radius {r:e}: cells {lo:?} to {hi:?}"
+            );
+            grid.insert(i as u32 + 1, at, r);
         }
         assert!(grid.cells.len() <= 4 * 8, "{} cells", grid.cells.len());
         let mut found = Vec::new();
-        grid.find(Vec3::ZERO, 1.0, |i| {
+        grid.any_candidate(Vec3::ZERO, 1.0, |i| {
             found.push(i);
             false
         });
