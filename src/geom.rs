@@ -83,14 +83,10 @@ impl Geometry {
     /// a hit whose surface point is made soon (a hint; nothing where the CPU has none).
     #[inline]
     pub fn prefetch(&self, i: usize) {
-        // Each record's first and last line (neither spans more than two).
-        let lines = |p: *const u8, len: usize| {
-            prefetch_line(p);
-            prefetch_line(p.wrapping_add(len - 1));
-        };
+        // Neither record spans more than two lines.
         if let (Some(t), Some(s)) = (self.triangles.get(i), self.shading.get(i)) {
-            lines(std::ptr::from_ref(t).cast(), size_of_val(t));
-            lines(std::ptr::from_ref(s).cast(), size_of_val(s));
+            prefetch_value(t);
+            prefetch_value(s);
         }
     }
 
@@ -129,6 +125,15 @@ pub fn prefetch_line<T>(p: *const T) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = p;
+}
+
+/// [`prefetch_line`] for the first and the last line of `*v`: all of a value that spans
+/// at most two lines.
+#[inline(always)]
+pub fn prefetch_value<T>(v: &T) {
+    let p: *const u8 = std::ptr::from_ref(v).cast();
+    prefetch_line(p);
+    prefetch_line(p.wrapping_add(size_of::<T>().max(1) - 1));
 }
 
 /// An orthonormal basis around `n` (Duff et al. 2017).

@@ -41,6 +41,7 @@ use super::importons::Importons;
 use super::kdtree::Neighbours;
 use super::{Anchor, AnchorId, AnchorParams, AnchorSet, KdTree, Quantizer};
 use crate::accel::{gamma, offset_ray_origin};
+use crate::geom::{prefetch_line, prefetch_value};
 use crate::interaction::{Materials, Segment, SurfacePoint};
 use crate::photon::PhotonMap;
 use crate::scene::FrameScene;
@@ -87,19 +88,27 @@ impl Attacher<'_> {
         )
     }
 
-    /// Step 1 (module doc) for one hit: read-only, against the anchors and photon links
-    /// as they are.
-    fn search(&self, set: &AnchorSet, hit: &AttachPoint) -> Search {
-        let x = hit.position;
-        // §3.3.2: the nearest photon's anchor, if it has one.
+    /// The nearest photon to `x` within the photon radius (§3.3.2), if any.
+    fn nearest_photon(&self, x: Vec3) -> Option<usize> {
         // (The search radius has a margin over the test's, which decides, so that the
         // photon found is the one an unbounded search would find and test.)
         let radius = self.params.photon_radius * self.scale;
-        let photon = self
-            .pm
+        self.pm
             .nearest_within(x, radius * (1.0 + 1e-5))
             .filter(|&(_, d)| d <= radius)
-            .map(|(i, _)| i);
+            .map(|(i, _)| i)
+    }
+
+    /// Step 1 (module doc) for one hit: read-only, against the anchors and photon links
+    /// as they are.
+    fn search(&self, set: &AnchorSet, hit: &AttachPoint) -> Search {
+        self.search_from(set, hit, self.nearest_photon(hit.position))
+    }
+
+    /// [`Attacher::search`] with the hit's nearest photon found already.
+    fn search_from(&self, set: &AnchorSet, hit: &AttachPoint, photon: Option<usize>) -> Search {
+        let x = hit.position;
+        // §3.3.2: the nearest photon's anchor, if it has one.
         let linked = photon.and_then(|ph| set.photon_links[ph]);
         // §3.3.1: D_max, constant or scaled by the importons.
         let factor = self.importance.map_or(1.0, |imp| imp.factor(x));
@@ -129,6 +138,9 @@ impl Attacher<'_> {
         // rebuilds it from the live ones).
         let (candidates, visited) = set.tree.search(x, d_max, 3, |_| true);
         search.visited = visited;
+        for &(_, id) in candidates.iter() {
+            prefetch_line(set.anchor(AnchorId(id)));
+        }
         // The photon's anchor, if it is among them, failed the tests already.
         search.found = candidates
             .iter()
@@ -327,16 +339,37 @@ impl Attacher<'_> {
             .map(|sp| AttachPoint::of(sp, self.m))
             .collect();
         let positions: Vec<Vec3> = points.iter().map(|p| p.position).collect();
-        crate::photon::knn::map_in_query_order(&positions, |i| {
-            let s = self.search(set, &points[i]);
-            Searched {
-                // A photon linked already keeps its anchor (step 3).
-                photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
-                visited: s.visited as u32,
-                found: match s.found {
-                    Some(id) => Ok(id),
-                    None => Err(Box::new(s)),
-                },
+        let order = crate::photon::knn::query_order(&positions);
+        // A group of hits at a time, each step's reads asked of the cache for the whole
+        // group before the step makes them: the next group's points (read in the search's
+        // order, not the hits'), the photons' links, the linked anchors.
+        crate::photon::knn::map_in_order_grouped(&order, SEARCH_GROUP, |group, next, put| {
+            for &i in next {
+                prefetch_value(&points[i as usize]);
+            }
+            let mut photons = [None; SEARCH_GROUP];
+            for (ph, &i) in photons.iter_mut().zip(group) {
+                *ph = self.nearest_photon(points[i as usize].position);
+                if let Some(ph) = *ph {
+                    prefetch_line(&set.photon_links[ph]);
+                }
+            }
+            for &ph in &photons {
+                if let Some(a) = ph.and_then(|ph| set.photon_links[ph]) {
+                    prefetch_line(set.anchor(a));
+                }
+            }
+            for (&ph, &i) in photons.iter().zip(group) {
+                let s = self.search_from(set, &points[i as usize], ph);
+                put(Searched {
+                    // A photon linked already keeps its anchor (step 3).
+                    photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
+                    visited: s.visited as u32,
+                    found: match s.found {
+                        Some(id) => Ok(id),
+                        None => Err(Box::new(s)),
+                    },
+                });
             }
         })
     }
@@ -431,6 +464,12 @@ impl AttachPoint {
 /// share's search. (Shares of an eighth of the batch, for more of step 2 beside the
 /// searches, made Sponza's frame 1 slower: the searches lose locality.)
 pub const SEARCH_SHARE: usize = 1 << 18;
+
+/// Hits of a share that step 1 searches as a group ([`Attacher::search_share`]): their
+/// photons first, then their links and anchors, each step's reads asked of the cache for
+/// the whole group before the next step makes them. (Groups of 4 and 16 were no
+/// different on Sponza, nor were the steps run a few hits apart, as a pipeline.)
+const SEARCH_GROUP: usize = 8;
 
 /// Bytes step 1 holds for a share of hits while it is searched ([`SEARCH_SHARE`]): what it
 /// reads of each hit, the hit's position and what it found; two shares are held at once

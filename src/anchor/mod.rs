@@ -238,6 +238,15 @@ impl AnchorSet {
         r * r * (1.0 + 1e-5)
     }
 
+    /// Asks the CPU to bring anchor `id` and its reach into its cache, for a read soon.
+    #[inline]
+    pub fn prefetch(&self, id: AnchorId) {
+        if let (Some(a), Some(r)) = (self.anchors.get(id.index()), self.reach.get(id.index())) {
+            crate::geom::prefetch_value(a);
+            crate::geom::prefetch_line(r);
+        }
+    }
+
     pub fn anchor(&self, id: AnchorId) -> &Anchor {
         &self.anchors[id.index()]
     }

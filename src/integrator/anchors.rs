@@ -501,23 +501,28 @@ fn reestimate_anchors(
     let positions = &at.positions;
     let lift = set.lift(frame.static_radius());
     let fresh: Vec<Option<(Vec3, f32, Option<usize>)>> =
-        crate::photon::knn::map_in_order(&at.order, |i| {
-            let a = &set_ref.anchors[i];
-            if !a.is_live() {
-                return None;
-            }
-            let x = positions[i];
-            let r2 = set_ref.reach2(AnchorId(i as u32));
-            let untouched = r2.is_finite()
-                && !all
-                && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
-            let r2_near = if near { r2 } else { f32::INFINITY };
-            (!untouched).then(|| {
-                let n = a.normal();
-                let (e, r2, ph) = pm.irradiance_radius_and_nearest_near(x, n, anchor_k, r2_near);
-                (e + pm.direct_from(frame, x + lift * n, n), r2, ph)
-            })
-        });
+        crate::photon::knn::map_in_order_prefetched(
+            &at.order,
+            |i| at.prefetch(set_ref, i),
+            |i| {
+                let a = &set_ref.anchors[i];
+                if !a.is_live() {
+                    return None;
+                }
+                let x = positions[i];
+                let r2 = set_ref.reach2(AnchorId(i as u32));
+                let untouched = r2.is_finite()
+                    && !all
+                    && changed_tree.as_ref().is_none_or(|t| !t.any_within(x, r2));
+                let r2_near = if near { r2 } else { f32::INFINITY };
+                (!untouched).then(|| {
+                    let n = a.normal();
+                    let (e, r2, ph) =
+                        pm.irradiance_radius_and_nearest_near(x, n, anchor_k, r2_near);
+                    (e + pm.direct_from(frame, x + lift * n, n), r2, ph)
+                })
+            },
+        );
     let mut changed: Vec<bool> = set.anchors.iter().map(|a| !a.is_live()).collect();
     let mut nearest = vec![NearestPhoton::Unknown; set.anchors.len()];
     let mut count = 0;
@@ -552,6 +557,14 @@ pub struct AnchorPlaces {
 }
 
 impl AnchorPlaces {
+    /// Asks the cache for anchor `i`, its reach and its position.
+    fn prefetch(&self, set: &AnchorSet, i: usize) {
+        set.prefetch(AnchorId(i as u32));
+        if let Some(p) = self.positions.get(i) {
+            crate::geom::prefetch_value(p);
+        }
+    }
+
     fn of(set: &AnchorSet) -> AnchorPlaces {
         let q = set.quantizer;
         let positions: Vec<Vec3> = set.anchors.iter().map(|a| a.position(&q)).collect();
@@ -568,15 +581,23 @@ fn relink_photons(set: &mut AnchorSet, pm: &PhotonMap, at: &AnchorPlaces, known:
     set.previous_photons = pm.paths();
     set.photon_links = vec![None; pm.photons.len()];
     let positions = &at.positions;
-    let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_order(&at.order, |i| {
-        if !set.anchors[i].is_live() {
-            return None;
-        }
-        match known[i] {
-            NearestPhoton::Searched(ph) => ph.map(|ph| ph as usize),
-            NearestPhoton::Unknown => pm.nearest(positions[i]),
-        }
-    });
+    let nearest: Vec<Option<usize>> = crate::photon::knn::map_in_order_prefetched(
+        &at.order,
+        |i| {
+            crate::geom::prefetch_value(&set.anchors[i]);
+            crate::geom::prefetch_line(&known[i]);
+            crate::geom::prefetch_line(&positions[i]);
+        },
+        |i| {
+            if !set.anchors[i].is_live() {
+                return None;
+            }
+            match known[i] {
+                NearestPhoton::Searched(ph) => ph.map(|ph| ph as usize),
+                NearestPhoton::Unknown => pm.nearest(positions[i]),
+            }
+        },
+    );
     for (i, ph) in nearest.into_iter().enumerate() {
         if let Some(ph) = ph
             && set.photon_links[ph].is_none()

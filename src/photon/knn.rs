@@ -305,35 +305,117 @@ pub fn map_in_query_order<T: Send>(points: &[Vec3], f: impl Fn(usize) -> T + Syn
 /// a permutation (each slot written once, by one thread).
 pub fn map_in_order<T: Send>(order: &QueryOrder, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     use rayon::prelude::*;
-    use std::mem::MaybeUninit;
     let order = &order.0;
-    let mut out: Vec<MaybeUninit<T>> = Vec::with_capacity(order.len());
-    out.resize_with(order.len(), MaybeUninit::uninit);
-    let slots = Slots(out.as_mut_ptr());
-    order.par_iter().for_each(|&i| {
-        let answer = f(i as usize);
-        // SAFETY: `order` is a permutation of 0..len ([`query_order`]): slot `i` lies within
-        // `out`, which outlives this loop, and no other iteration writes it. (Should `f`
-        // panic, `out` is dropped as uninitialised slots: the answers written leak.)
-        unsafe { slots.get().add(i as usize).write(MaybeUninit::new(answer)) };
-    });
-    // SAFETY: every slot was written once (a permutation), and `MaybeUninit<T>` has `T`'s
-    // size and alignment, so the buffer holds `len` initialised `T`s.
+    // SAFETY: `order` is a permutation of 0..len ([`query_order`]): each slot is written
+    // once, by the one iteration that meets its index.
+    unsafe {
+        in_slots(order.len(), |slots| {
+            order
+                .par_iter()
+                .for_each(|&i| slots.write(i, f(i as usize)));
+        })
+    }
+}
+
+/// [`map_in_order`] a group of `group` consecutive points of the order at a time (at least
+/// one): `f` is given a group's indices and the next group's (empty after the last), and
+/// calls `put` with its answers in the group's order. For look-ups that read memory at
+/// addresses that earlier reads give (a photon, then its link, then an anchor): `f` can ask
+/// the cache for the next group's inputs, and for each step's reads across its group
+/// before it makes them, so that one point's wait overlaps the others' work. The answers
+/// do not depend on `group`.
+///
+/// # Panics
+/// If `f` puts other than one answer for each index of its group.
+pub fn map_in_order_grouped<T: Send>(
+    order: &QueryOrder,
+    group: usize,
+    f: impl Fn(&[u32], &[u32], &mut dyn FnMut(T)) + Sync,
+) -> Vec<T> {
+    use rayon::prelude::*;
+    let order = &order.0;
+    let group = group.max(1);
+    let end = |at: usize| at.min(order.len());
+    // SAFETY: the groups split the permutation `order` ([`query_order`]), and each group
+    // writes the slots of its own indices, one answer each (checked as they come and at
+    // its end): each slot is written once.
+    unsafe {
+        in_slots(order.len(), |slots| {
+            (0..order.len().div_ceil(group))
+                .into_par_iter()
+                .for_each(|g| {
+                    let this = &order[g * group..end((g + 1) * group)];
+                    let next = &order[end((g + 1) * group)..end((g + 2) * group)];
+                    let mut at = this.iter();
+                    f(this, next, &mut |answer| {
+                        slots.write(*at.next().expect("no more answers than points"), answer);
+                    });
+                    assert!(at.next().is_none(), "an answer for each point");
+                });
+        })
+    }
+}
+
+/// [`map_in_order`] that asks the cache for what `f` reads at a point ahead of it, by
+/// `ahead(i)` for point `i` a group of [`PREFETCH_GROUP`] points before `f(i)`: for maps
+/// over arrays indexed by the points' order (anchors and their reaches, visited in
+/// [`query_order`]), which the Morton order reads at scattered places.
+pub fn map_in_order_prefetched<T: Send>(
+    order: &QueryOrder,
+    ahead: impl Fn(usize) + Sync,
+    f: impl Fn(usize) -> T + Sync,
+) -> Vec<T> {
+    map_in_order_grouped(order, PREFETCH_GROUP, |group, next, put| {
+        for &i in next {
+            ahead(i as usize);
+        }
+        for &i in group {
+            put(f(i as usize));
+        }
+    })
+}
+
+/// The points [`map_in_order_prefetched`] asks the cache for at once.
+pub const PREFETCH_GROUP: usize = 8;
+
+/// `len` answers that `fill` writes into their slots from any thread, as a vector.
+///
+/// # Safety
+/// `fill` writes each of the slots `0..len` exactly once ([`Slots::write`]), or panics
+/// (then the answers written leak).
+unsafe fn in_slots<T: Send>(len: usize, fill: impl FnOnce(&Slots<T>)) -> Vec<T> {
+    use std::mem::MaybeUninit;
+    let mut out: Vec<MaybeUninit<T>> = Vec::with_capacity(len);
+    out.resize_with(len, MaybeUninit::uninit);
+    fill(&Slots(out.as_mut_ptr(), len));
+    // SAFETY: every slot was written once (the caller's contract), and `MaybeUninit<T>` has
+    // `T`'s size and alignment, so the buffer holds `len` initialised `T`s.
     let mut out = std::mem::ManuallyDrop::new(out);
     unsafe { Vec::from_raw_parts(out.as_mut_ptr().cast::<T>(), out.len(), out.capacity()) }
 }
 
-/// The slots [`map_in_order`] writes from several threads at once.
-struct Slots<T>(*mut std::mem::MaybeUninit<T>);
+/// The slots [`in_slots`] fills from several threads at once: a vector's buffer and its
+/// length.
+struct Slots<T>(*mut std::mem::MaybeUninit<T>, usize);
 
-// SAFETY: the threads write distinct slots only (`map_in_order`), each a `T: Send`.
+// SAFETY: the threads write distinct slots only ([`in_slots`]'s contract), each a `T: Send`.
 unsafe impl<T: Send> Send for Slots<T> {}
 unsafe impl<T: Send> Sync for Slots<T> {}
 
 impl<T> Slots<T> {
-    /// The first slot (a method, so that closures capture the `Slots` and not the pointer).
-    fn get(&self) -> *mut std::mem::MaybeUninit<T> {
-        self.0
+    /// Writes slot `i`.
+    ///
+    /// # Safety
+    /// No other write of slot `i` happens, before or at the same time.
+    ///
+    /// # Panics
+    /// If `i` lies past the slots.
+    unsafe fn write(&self, i: u32, answer: T) {
+        let i = i as usize;
+        assert!(i < self.1, "slot {i} of {}", self.1);
+        // SAFETY: slot `i` lies within the buffer (asserted), which outlives `self`, and
+        // nothing else writes it (the caller's contract).
+        unsafe { self.0.add(i).write(std::mem::MaybeUninit::new(answer)) };
     }
 }
 
@@ -532,6 +614,65 @@ mod tests {
                 .enumerate()
                 .all(|(i, s)| *s == format!("point {i}"))
         );
+    }
+
+    #[test]
+    fn grouped_maps_answer_every_point_in_its_slot() {
+        let points: Vec<Vec3> = (0..1000)
+            .map(|i| {
+                let f = i as f32;
+                Vec3::new((f * 0.37).sin(), (f * 1.91).cos(), (f * 0.13).fract())
+            })
+            .collect();
+        let order = query_order(&points);
+        // Groups that divide the points and groups that leave a short last one; answers
+        // that own heap memory.
+        for group in [0, 1, 3, 8, 999, 1000, 4096] {
+            let seen = std::sync::Mutex::new(Vec::<u32>::new());
+            let named = map_in_order_grouped(&order, group, |this, next, put| {
+                assert!(this.len() <= group.max(1) && next.len() <= group.max(1));
+                seen.lock().unwrap().extend(next);
+                for &i in this {
+                    put(format!("point {i}"));
+                }
+            });
+            assert!(
+                named
+                    .iter()
+                    .enumerate()
+                    .all(|(i, s)| *s == format!("point {i}")),
+                "groups of {group}"
+            );
+            // Every point but the first group's is announced, once, a group ahead.
+            let mut seen = seen.into_inner().unwrap();
+            seen.sort_unstable();
+            let first = group.clamp(1, points.len());
+            assert_eq!(seen.len(), points.len() - first, "groups of {group}");
+            seen.dedup();
+            assert_eq!(seen.len(), points.len() - first, "groups of {group}");
+        }
+        let ahead = std::sync::atomic::AtomicUsize::new(0);
+        let back = map_in_order_prefetched(
+            &order,
+            |_| {
+                ahead.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            },
+            |i| i,
+        );
+        assert!(back.into_iter().eq(0..points.len()));
+        assert_eq!(ahead.into_inner(), points.len() - PREFETCH_GROUP);
+        assert!(map_in_order_grouped(&query_order(&[]), 8, |_, _, put| put(0u8)).is_empty());
+    }
+
+    #[test]
+    #[should_panic(expected = "an answer for each point")]
+    fn a_group_that_answers_too_few_points_panics() {
+        let points = vec![Vec3::ZERO; 20];
+        map_in_order_grouped(&query_order(&points), 8, |this, _, put| {
+            for &i in &this[1..] {
+                put(i);
+            }
+        });
     }
 
     #[test]
