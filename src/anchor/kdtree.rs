@@ -115,20 +115,17 @@ impl Pending {
         Some(self.array[self.top])
     }
 
-    /// Pushes `first` if `keep`, then `last` (popped first). The array's pushes store
-    /// `first` either way and keep it by moving the top or not: no branch on `keep`.
-    fn push_pair(&mut self, first: (u32, f32), keep: bool, last: (u32, f32)) {
-        if self.top + 2 > self.array.len() || !self.spill.is_empty() {
+    /// Pushes `e` if `keep`. The array's push stores `e` either way and keeps it by moving
+    /// the top or not: no branch on `keep`.
+    fn push_if(&mut self, e: (u32, f32), keep: bool) {
+        if self.top >= self.array.len() || !self.spill.is_empty() {
             if keep {
-                self.spill.push(first);
+                self.spill.push(e);
             }
-            self.spill.push(last);
             return;
         }
-        self.array[self.top] = first;
+        self.array[self.top] = e;
         self.top += usize::from(keep);
-        self.array[self.top] = last;
-        self.top += 1;
     }
 }
 
@@ -378,40 +375,43 @@ impl KdTree {
         // Each pending subtree with the squared distance to its splitting plane, so that a
         // far side is skipped if the search radius shrank below it since it was pushed.
         let mut stack = Pending::new();
-        while let Some((i, plane2)) = stack.pop() {
+        while let Some((mut i, plane2)) = stack.pop() {
             if plane2 > r2 {
                 continue;
             }
-            visited += 1;
-            let n = self.nodes[i as usize];
-            if n.axis == LEAF {
-                let l = n.a as usize;
-                let (mut within, d2s) = self.buckets[l].within(p, r2, self.len[l] as usize);
-                let items = &self.items[l * BUCKET..][..BUCKET];
-                while within != 0 {
-                    let s = within.trailing_zeros() as usize;
-                    within &= within - 1;
-                    let c = (d2s[s], items[s]);
-                    if c.0 > r2 || (found == k && c >= best[k - 1]) || !accept(c.1) {
-                        continue;
-                    }
-                    // Into its place among the first `found`, the last dropping out at k.
-                    let mut at = found.min(k - 1);
-                    while at > 0 && c < best[at - 1] {
-                        best[at] = best[at - 1];
-                        at -= 1;
-                    }
-                    best[at] = c;
-                    found = (found + 1).min(k);
-                    if found == k {
-                        r2 = best[k - 1].0;
-                    }
+            // Down the nearer side of each split to a leaf, the farther sides pending.
+            let leaf = loop {
+                visited += 1;
+                let n = self.nodes[i as usize];
+                if n.axis == LEAF {
+                    break n.a as usize;
                 }
-                continue;
+                let delta = axes[usize::from(n.axis & 3)] - n.split;
+                let (near, far) = if delta < 0.0 { (n.a, n.b) } else { (n.b, n.a) };
+                stack.push_if((far, delta * delta), delta * delta <= r2);
+                i = near;
+            };
+            let (mut within, d2s) = self.buckets[leaf].within(p, r2, self.len[leaf] as usize);
+            let items = &self.items[leaf * BUCKET..][..BUCKET];
+            while within != 0 {
+                let s = within.trailing_zeros() as usize;
+                within &= within - 1;
+                let c = (d2s[s], items[s]);
+                if c.0 > r2 || (found == k && c >= best[k - 1]) || !accept(c.1) {
+                    continue;
+                }
+                // Into its place among the first `found`, the last dropping out at k.
+                let mut at = found.min(k - 1);
+                while at > 0 && c < best[at - 1] {
+                    best[at] = best[at - 1];
+                    at -= 1;
+                }
+                best[at] = c;
+                found = (found + 1).min(k);
+                if found == k {
+                    r2 = best[k - 1].0;
+                }
             }
-            let delta = axes[usize::from(n.axis & 3)] - n.split;
-            let (near, far) = if delta < 0.0 { (n.a, n.b) } else { (n.b, n.a) };
-            stack.push_pair((far, delta * delta), delta * delta <= r2, (near, 0.0));
         }
         (best[..found].iter().copied().collect(), visited)
     }
