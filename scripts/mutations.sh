@@ -65,6 +65,9 @@ declare -A TESTS=(
   [grid-last-lane-skipped]="lib:cache::"
   [placement-untimed]="gi::uncached_samples_count"
   [upkeep-untimed]="gi::uncached_samples_count"
+  [group-photon-misplaced]="anchors::a_batch"
+  [kd-spill-far-dropped]="lib:anchor::kdtree"
+  [grouped-map-next-empty]="lib:photon::knn"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -78,7 +81,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   checkpoint-memory-uncounted parts-finished-each parts-link-afresh
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
-  grid-last-lane-skipped placement-untimed upkeep-untimed)
+  grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
+  kd-spill-far-dropped grouped-map-next-empty)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
