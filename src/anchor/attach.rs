@@ -99,14 +99,9 @@ impl Attacher<'_> {
             .map(|(i, _)| i)
     }
 
-    /// Step 1 (module doc) for one hit: read-only, against the anchors and photon links
-    /// as they are.
-    fn search(&self, set: &AnchorSet, hit: &AttachPoint) -> Search {
-        self.search_from(set, hit, self.nearest_photon(hit.position))
-    }
-
-    /// [`Attacher::search`] with the hit's nearest photon found already.
-    fn search_from(&self, set: &AnchorSet, hit: &AttachPoint, photon: Option<usize>) -> Search {
+    /// Step 1 (module doc) for one hit whose nearest photon ([`Attacher::nearest_photon`])
+    /// is `photon`: read-only, against the anchors and photon links as they are.
+    fn search(&self, set: &AnchorSet, hit: &AttachPoint, photon: Option<usize>) -> Search {
         let x = hit.position;
         // §3.3.2: the nearest photon's anchor, if it has one.
         let linked = photon.and_then(|ph| set.photon_links[ph]);
@@ -154,7 +149,9 @@ impl Attacher<'_> {
     /// The anchor an attachment of `sp` would link to among the existing anchors (step 1,
     /// read-only: nothing is made or linked), if one is acceptable.
     pub fn find(&self, set: &AnchorSet, sp: &SurfacePoint) -> Option<AnchorId> {
-        self.search(set, &AttachPoint::of(sp, self.m)).found
+        let hit = AttachPoint::of(sp, self.m);
+        self.search(set, &hit, self.nearest_photon(hit.position))
+            .found
     }
 
     /// Step 2 (module doc) for a hit whose search found no anchor: the anchor its photon
@@ -360,7 +357,7 @@ impl Attacher<'_> {
                 }
             }
             for (&ph, &i) in photons.iter().zip(group) {
-                let s = self.search_from(set, &points[i as usize], ph);
+                let s = self.search(set, &points[i as usize], ph);
                 put(Searched {
                     // A photon linked already keeps its anchor (step 3).
                     photon: s.photon.filter(|_| s.linked.is_none()).map(|ph| ph as u32),
