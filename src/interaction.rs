@@ -240,6 +240,20 @@ impl Segment {
         let (target, target_error, target_n) = to;
         let origin = offset_ray_origin(position, error, ng, target - position);
         let end = offset_ray_origin(target, target_error, target_n, origin - target);
+        Segment::from_ends(origin, end)
+    }
+
+    /// The shadow ray from a point `from` on a surface (as in [`Segment::between`]) to a
+    /// point `target` known exactly, which is not offset: [`Segment::between`] with a zero
+    /// error bound at `target` (whose offset is zero along any finite normal), without
+    /// computing the offset.
+    pub fn to_exact(from: (Vec3, Vec3, Vec3), target: Vec3) -> Option<Segment> {
+        let (position, error, ng) = from;
+        let origin = offset_ray_origin(position, error, ng, target - position);
+        Segment::from_ends(origin, target)
+    }
+
+    fn from_ends(origin: Vec3, end: Vec3) -> Option<Segment> {
         let d = end - origin;
         let length = d.length();
         (length > 0.0 && length.is_finite()).then(|| Segment {
@@ -870,4 +884,45 @@ pub fn brdf_sampled_emission(
     let p_light = n_light as f32 * emitter_pdf(frame, &y, s.wi, h.t);
     let w = power_heuristic(s.pdf, p_light);
     s.f.scale(l_e * (ns.dot(s.wi) / s.pdf * w))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::accel::canonical;
+
+    #[test]
+    fn a_segment_to_an_exact_point_is_one_between_with_no_error_there() {
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            (state >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+        };
+        for i in 0..20_000 {
+            let scale = [1e-3, 1.0, 1e6][i % 3];
+            let mut v = || Vec3::new(next(), next(), next());
+            let (p, target) = (v() * scale, v() * scale);
+            let error = v().abs() * scale * 1e-6;
+            let (ng, target_n) = (v().normalize_or(Vec3::Z), v().normalize_or(Vec3::Y));
+            let (Some(a), Some(b)) = (
+                Segment::to_exact((p, error, ng), target),
+                Segment::between((p, error, ng), (target, Vec3::ZERO, target_n)),
+            ) else {
+                panic!("{p} to {target}: no segment");
+            };
+            // The ray that runs is the same to the bit (a zero's sign aside, which the
+            // trace's canonical direction drops).
+            let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+            assert_eq!(bits(a.origin), bits(b.origin));
+            assert_eq!(
+                bits(canonical(a.dir)),
+                bits(canonical(b.dir)),
+                "{p} to {target}"
+            );
+            assert_eq!(a.tmax.to_bits(), b.tmax.to_bits());
+            assert_eq!(a.length.to_bits(), b.length.to_bits());
+        }
+    }
 }

@@ -62,7 +62,8 @@ pub struct Attacher<'a> {
 impl Attacher<'_> {
     fn acceptable(&self, q: &Quantizer, a: &Anchor, hit: &AttachPoint) -> bool {
         // Cheapest first (§3.1): normal, albedo, then visibility by a shadow ray.
-        if a.normal().dot(hit.ng) < self.params.normal_cos {
+        let n = a.normal();
+        if n.dot(hit.ng) < self.params.normal_cos {
             return false;
         }
         if (a.albedo() - hit.albedo).abs().max_element() > self.params.albedo_tolerance {
@@ -74,9 +75,9 @@ impl Attacher<'_> {
         // leaving the anchor on the side its normal faces.
         let p = a.position(q);
         let p_error = 2.0 * q.error() + p.abs() * gamma(7);
-        let target = offset_ray_origin(p, p_error, a.normal(), a.normal());
+        let target = offset_ray_origin(p, p_error, n, n);
         let from = (hit.position, hit.error, hit.ng);
-        let Some(s) = Segment::between(from, (target, Vec3::ZERO, a.normal())) else {
+        let Some(s) = Segment::to_exact(from, target) else {
             return true;
         };
         !self.frame.accel.occluded(
