@@ -9,7 +9,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::color::{
-    oct_decode, oct_encode, rgbe_decode, rgbe_encode, srgb_encode, srgb8_to_linear,
+    oct_decode_table, oct_encode, rgbe_decode, rgbe_encode, srgb_encode, srgb8_to_linear,
 };
 
 /// A compact anchor.
@@ -102,7 +102,7 @@ impl Anchor {
     }
 
     pub fn normal(&self) -> Vec3 {
-        oct_decode(self.normal)
+        oct_decode_table(self.normal)
     }
 
     pub fn albedo(&self) -> Vec3 {
