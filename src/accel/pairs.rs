@@ -267,7 +267,7 @@ impl PairTree {
         // The hit so far: its distance and its triangle's index in `g`.
         let mut best: Option<(f32, u32)> = None;
         obvhs::fast_stack!(u32, (96, 192), self.max_depth, stack, {
-            self.traverse(&mut stack, ray, |leaf, tmax| {
+            self.traverse::<_, true>(&mut stack, ray, |leaf, tmax| {
                 self.leaf_hits(sr, g, leaf, tmax, |id, t, tmax| {
                     self.keep_nearer(&mut best, id, t, tmax);
                     true
@@ -407,7 +407,7 @@ impl PairTree {
     pub(super) fn occluded(&self, g: &Geometry, ray: &Ray, sr: &ShearedRay) -> bool {
         let mut hit = false;
         obvhs::fast_stack!(u32, (96, 192), self.max_depth, stack, {
-            self.traverse(&mut stack, ray, |leaf, tmax| {
+            self.traverse::<_, false>(&mut stack, ray, |leaf, tmax| {
                 hit = !self.leaf_hits(sr, g, leaf, tmax, |_, t, tmax| !(t < *tmax));
                 !hit
             })
@@ -432,9 +432,11 @@ impl PairTree {
     }
 
     /// obvhs's `Bvh2::ray_traverse_dynamic` over the pairs: `leaf` tests a leaf's triangles,
-    /// may shorten the ray and returns false to stop.
+    /// may shorten the ray and returns false to stop. `NEAR_FIRST`: a pair's nearer child
+    /// first (a closest hit shortens the ray sooner); an occlusion test, whose answer is the
+    /// same in any order, takes them as they lie.
     #[inline(always)]
-    fn traverse<S: FastStack<u32>>(
+    fn traverse<S: FastStack<u32>, const NEAR_FIRST: bool>(
         &self,
         stack: &mut S,
         ray: &Ray,
@@ -470,7 +472,7 @@ impl PairTree {
                 }
             };
             let (mut a, mut b) = ((entry(0), p.link[0]), (entry(1), p.link[1]));
-            if a.0 > b.0 {
+            if NEAR_FIRST && a.0 > b.0 {
                 std::mem::swap(&mut a, &mut b);
             }
             // Whether to descend into a child: a leaf hit is tested now (`None`: stop).
