@@ -15,6 +15,9 @@
 # mixed into the mutants). Exit status: 0 when every mutation was caught, 1 otherwise.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The mutants build in a target directory of their own, so that target/release keeps the
+# binaries of the source as it is (the first run builds everything once).
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target/mutants}"
 
 declare -A TESTS=(
   [no-reshoot]="anchor_faults anchors::"
@@ -68,6 +71,8 @@ declare -A TESTS=(
   [group-photon-misplaced]="anchors::a_batch"
   [kd-spill-far-dropped]="lib:anchor::kdtree"
   [grouped-map-next-empty]="lib:photon::knn"
+  [normal-table-bytes-swapped]="lib:color::"
+  [exact-segment-wrong-side]="lib:interaction::"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -82,7 +87,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
   grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
-  kd-spill-far-dropped grouped-map-next-empty)
+  kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
