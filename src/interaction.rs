@@ -893,12 +893,10 @@ mod tests {
 
     #[test]
     fn a_segment_to_an_exact_point_is_one_between_with_no_error_there() {
-        let mut state = 0x2545_f491_4f6c_dd1d_u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+        let mut state = 3u32;
+        let mut next = || {
+            state = crate::sampling::hash(&[state]);
+            state as f32 / u32::MAX as f32 * 2.0 - 1.0
         };
         for i in 0..20_000 {
             let scale = [1e-3, 1.0, 1e6][i % 3];
