@@ -44,6 +44,7 @@ use crate::accel::{gamma, offset_ray_origin};
 use crate::geom::{prefetch_line, prefetch_value};
 use crate::interaction::{Materials, Segment, SurfacePoint};
 use crate::photon::PhotonMap;
+use crate::photon::knn::QueryOrder;
 use crate::scene::FrameScene;
 
 /// Pseudocode 1 with the reuse heuristics of §3.1, for one frame.
@@ -242,14 +243,15 @@ impl Attacher<'_> {
         hits: &[&SurfacePoint],
         share: usize,
     ) -> (Vec<AnchorId>, Vec<AnchorId>) {
-        let mut linking = self.begin(set);
+        let mut linking = self.begin(set, SearchBuffers::default());
         let ids = self.link_part(set, &mut linking, hits, share);
-        (ids, self.end(set, linking))
+        (ids, self.end(set, linking).0)
     }
 
     /// A batch attached a part at a time ([`Attacher::link_part`]): what steps 2 and 3 have
-    /// made so far, kept apart from `set` until [`Attacher::end`].
-    pub fn begin(&self, set: &AnchorSet) -> Linking {
+    /// made so far, kept apart from `set` until [`Attacher::end`]. Its searches fill
+    /// `buffers` (which [`Attacher::end`] hands back for the next batch).
+    pub fn begin(&self, set: &AnchorSet, buffers: SearchBuffers) -> Linking {
         Linking {
             made: Made {
                 links: set.photon_links.clone(),
@@ -260,6 +262,7 @@ impl Attacher<'_> {
             },
             searched: 0,
             visited: 0,
+            buffers,
         }
     }
 
@@ -278,14 +281,20 @@ impl Attacher<'_> {
             made,
             searched,
             visited,
+            buffers: SearchBuffers([now, later]),
         } = linking;
+        let (mut now, mut later) = (now, later);
         let mut ids = Vec::with_capacity(hits.len());
         let mut shares = hits.chunks(share.max(1));
-        let mut current = shares.next().map(|share| self.search_share(set, share));
-        while let Some(searches) = current {
+        let mut current = shares.next();
+        if let Some(share) = current {
+            self.search_share(set, share, now);
+        }
+        while current.is_some() {
             let next = shares.next();
+            let searches = &now.searched;
             let step2 = || {
-                for s in &searches {
+                for s in searches {
                     *searched += u64::from(s.visited > 0);
                     *visited += u64::from(s.visited);
                     let id = match &s.found {
@@ -301,15 +310,22 @@ impl Attacher<'_> {
                     ids.push(id);
                 }
             };
-            (current, ()) = rayon::join(|| next.map(|share| self.search_share(set, share)), step2);
+            let search_next = || {
+                if let Some(share) = next {
+                    self.search_share(set, share, later);
+                }
+            };
+            rayon::join(search_next, step2);
+            std::mem::swap(&mut now, &mut later);
+            current = next;
         }
         ids
     }
 
     /// Ends a batch begun with [`Attacher::begin`]: the anchors and photon links its parts
     /// made go into `set`. Returns the anchors made, whose L_i
-    /// [`Attacher::estimate_created`] estimates.
-    pub fn end(&self, set: &mut AnchorSet, linking: Linking) -> Vec<AnchorId> {
+    /// [`Attacher::estimate_created`] estimates, and the searches' buffers.
+    pub fn end(&self, set: &mut AnchorSet, linking: Linking) -> (Vec<AnchorId>, SearchBuffers) {
         set.tree.count(linking.searched, linking.visited);
         set.photon_links = linking.made.links;
         let mut created = Vec::with_capacity(linking.made.anchors.len());
@@ -322,26 +338,35 @@ impl Attacher<'_> {
             set.set_reach(added, reach2);
             created.push(added);
         }
-        created
+        (created, linking.buffers)
     }
 
-    /// Step 1 (module doc) for a share of a batch's hits. A hit's whole search is kept
-    /// only where it found no anchor (step 2 reads it): most find one, and the batch holds
-    /// millions. What the search reads of each hit is gathered first, in the hits' order:
-    /// the search visits the hits in spatial order, and a whole surface point spans two
-    /// cache lines.
-    fn search_share(&self, set: &AnchorSet, share: &[&SurfacePoint]) -> Vec<Searched> {
+    /// Step 1 (module doc) for a share of a batch's hits, into `buffers.searched`. A hit's
+    /// whole search is kept only where it found no anchor (step 2 reads it): most find one,
+    /// and the batch holds millions. What the search reads of each hit is gathered first,
+    /// in the hits' order: the search visits the hits in spatial order, and a whole surface
+    /// point spans two cache lines.
+    fn search_share(&self, set: &AnchorSet, share: &[&SurfacePoint], buffers: &mut ShareBuffers) {
         use rayon::prelude::*;
-        let points: Vec<AttachPoint> = share
+        let ShareBuffers {
+            points,
+            positions,
+            keys,
+            order,
+            searched,
+        } = buffers;
+        share
             .par_iter()
             .map(|sp| AttachPoint::of(sp, self.m))
-            .collect();
-        let positions: Vec<Vec3> = points.iter().map(|p| p.position).collect();
-        let order = crate::photon::knn::query_order(&positions);
+            .collect_into_vec(points);
+        positions.clear();
+        positions.extend(points.iter().map(|p| p.position));
+        crate::photon::knn::query_order_into(positions, keys, order);
+        let points = &*points;
         // A group of hits at a time, each step's reads asked of the cache for the whole
         // group before the step makes them: the next group's points (read in the search's
         // order, not the hits'), the photons' links, the linked anchors.
-        crate::photon::knn::map_in_order_grouped(&order, SEARCH_GROUP, |group, next, put| {
+        let search = |group: &[u32], next: &[u32], put: &mut dyn FnMut(Searched)| {
             for &i in next {
                 prefetch_value(&points[i as usize]);
             }
@@ -369,7 +394,8 @@ impl Attacher<'_> {
                     },
                 });
             }
-        })
+        };
+        crate::photon::knn::map_in_order_grouped_into(order, SEARCH_GROUP, search, searched);
     }
 
     /// Step 3 (module doc) for the anchors `created`: their L_i, estimated
@@ -417,6 +443,26 @@ pub struct Linking {
     /// Anchor-tree searches made and the nodes they visited (§3's rebalancing rule).
     searched: u64,
     visited: u64,
+    buffers: SearchBuffers,
+}
+
+/// The buffers of step 1 (module doc): those of the share being searched and of the one
+/// step 2 reads. They pass from share to share, part to part and batch to batch
+/// ([`Attacher::begin`], [`Attacher::end`]): fresh buffers, 27 MB a share, cost the kernel
+/// a fault and a zeroed page at each first touch of 4 KiB, and a frame attaches one batch
+/// for each round of placement, of a few shares each.
+#[derive(Default)]
+pub struct SearchBuffers([ShareBuffers; 2]);
+
+/// What step 1 holds for a share of hits ([`Attacher::search_share`]): what it reads of
+/// each hit, their positions and spatial order, and what it found.
+#[derive(Default)]
+struct ShareBuffers {
+    points: Vec<AttachPoint>,
+    positions: Vec<Vec3>,
+    keys: Vec<(u32, u32)>,
+    order: QueryOrder,
+    searched: Vec<Searched>,
 }
 
 /// What step 2 and the claims of step 3 change while a batch attaches (module doc), kept
@@ -469,11 +515,15 @@ pub const SEARCH_SHARE: usize = 1 << 18;
 /// different on Sponza, nor were the steps run a few hits apart, as a pipeline.)
 const SEARCH_GROUP: usize = 8;
 
-/// Bytes step 1 holds for a share of hits while it is searched ([`SEARCH_SHARE`]): what it
-/// reads of each hit, the hit's position and what it found; two shares are held at once
-/// (one searched beside the last one's step 2), 48 MB.
-pub const SHARE_BYTES: usize =
-    SEARCH_SHARE * (size_of::<AttachPoint>() + size_of::<Vec3>() + size_of::<Searched>());
+/// Bytes step 1 holds for a share of hits ([`SEARCH_SHARE`], [`ShareBuffers`]): what it
+/// reads of each hit, the hit's position, sort key and place in the order, and what it
+/// found; two shares are held at once (one searched beside the last one's step 2), 55 MB.
+pub const SHARE_BYTES: usize = SEARCH_SHARE
+    * (size_of::<AttachPoint>()
+        + size_of::<Vec3>()
+        + size_of::<(u32, u32)>()
+        + size_of::<u32>()
+        + size_of::<Searched>());
 
 /// What step 1 (module doc) found for one hit.
 struct Search {

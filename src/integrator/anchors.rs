@@ -25,7 +25,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::{FrameContext, GiParams};
-use crate::anchor::attach::{Attacher, Linking, SEARCH_SHARE};
+use crate::anchor::attach::{Attacher, Linking, SEARCH_SHARE, SearchBuffers};
 use crate::anchor::importons::Importons;
 use crate::anchor::{AnchorId, AnchorSet, Density, Quantizer};
 use crate::cache::gather::{self, GatherHit, GatherTimings, Resolve, Resolved};
@@ -73,6 +73,8 @@ struct AnchorResolver<'a, 'b> {
     previous: Option<&'a [Vec<Stratum>]>,
     /// The batch's attachment so far (`None` before its first part and after it finishes).
     linking: Option<Linking>,
+    /// Attachment's buffers between batches.
+    buffers: SearchBuffers,
     /// Records of the batch resolved so far (where the next part's `previous` start).
     done: usize,
     seconds: &'b mut f64,
@@ -90,6 +92,7 @@ impl<'a, 'b> AnchorResolver<'a, 'b> {
             set,
             previous,
             linking: None,
+            buffers: SearchBuffers::default(),
             done: 0,
             seconds,
         }
@@ -119,7 +122,10 @@ impl Resolve for AnchorResolver<'_, '_> {
         let att = self.att;
         let previous = self.previous.map(|p| &p[self.done..self.done + hits.len()]);
         self.done += hits.len();
-        let linking = self.linking.get_or_insert_with(|| att.begin(self.set));
+        let buffers = &mut self.buffers;
+        let linking = self
+            .linking
+            .get_or_insert_with(|| att.begin(self.set, std::mem::take(buffers)));
         resolve_part(
             att,
             self.set,
@@ -134,7 +140,11 @@ impl Resolve for AnchorResolver<'_, '_> {
     fn finish(&mut self, _: &mut [Resolved]) {
         let t = Instant::now();
         let created = match self.linking.take() {
-            Some(linking) => self.att.end(self.set, linking),
+            Some(linking) => {
+                let (created, buffers) = self.att.end(self.set, linking);
+                self.buffers = buffers;
+                created
+            }
             None => Vec::new(),
         };
         *self.seconds += t.elapsed().as_secs_f64();

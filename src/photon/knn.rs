@@ -247,8 +247,10 @@ impl PointTree {
     }
 }
 
-/// An order of a batch's points, each index once: made only by [`query_order`], so that
-/// [`map_in_order`] can write each answer to its own slot from any thread.
+/// An order of a batch's points, each index once: made only by [`query_order`] (or
+/// [`query_order_into`]; the default orders no points), so that [`map_in_order`] can write
+/// each answer to its own slot from any thread.
+#[derive(Default)]
 pub struct QueryOrder(Vec<u32>);
 
 /// An order in which to query the tree at `points` (indices into it): along a Morton curve
@@ -256,6 +258,14 @@ pub struct QueryOrder(Vec<u32>);
 /// queries visit the same nodes and points and find them in cache. The answers do not
 /// depend on the order.
 pub fn query_order(points: &[Vec3]) -> QueryOrder {
+    let mut order = QueryOrder::default();
+    query_order_into(points, &mut Vec::new(), &mut order);
+    order
+}
+
+/// [`query_order`] into `order`, sorting in `keys`: both keep their buffers, for batches
+/// ordered one after another.
+pub fn query_order_into(points: &[Vec3], keys: &mut Vec<(u32, u32)>, order: &mut QueryOrder) {
     assert!(points.len() <= u32::MAX as usize, "at most 2^32 points");
     let (lo, hi) = points
         .iter()
@@ -277,14 +287,16 @@ pub fn query_order(points: &[Vec3]) -> QueryOrder {
         spread(c.x as u32) | spread(c.y as u32) << 1 | spread(c.z as u32) << 2
     };
     use rayon::prelude::*;
-    let mut order: Vec<(u32, u32)> = points
+    points
         .par_iter()
         .enumerate()
         .map(|(i, p)| (if p.is_finite() { key(p) } else { 0 }, i as u32))
-        .collect();
+        .collect_into_vec(keys);
     // Keys with their index are distinct: the order is the same however the sort splits.
-    order.par_sort_unstable();
-    QueryOrder(order.into_par_iter().map(|(_, i)| i).collect())
+    keys.par_sort_unstable();
+    keys.par_iter()
+        .map(|&(_, i)| i)
+        .collect_into_vec(&mut order.0);
 }
 
 /// `f(i)` for every point `i` of `points`, computed in parallel in [`query_order`] and
@@ -332,6 +344,22 @@ pub fn map_in_order_grouped<T: Send>(
     group: usize,
     f: impl Fn(&[u32], &[u32], &mut dyn FnMut(T)) + Sync,
 ) -> Vec<T> {
+    let mut out = Vec::new();
+    map_in_order_grouped_into(order, group, f, &mut out);
+    out
+}
+
+/// [`map_in_order_grouped`] into `out` (its answers replaced), which keeps its buffer: for
+/// batches mapped one after another.
+///
+/// # Panics
+/// If `f` puts other than one answer for each index of its group.
+pub fn map_in_order_grouped_into<T: Send>(
+    order: &QueryOrder,
+    group: usize,
+    f: impl Fn(&[u32], &[u32], &mut dyn FnMut(T)) + Sync,
+    out: &mut Vec<T>,
+) {
     use rayon::prelude::*;
     let order = &order.0;
     let group = group.max(1);
@@ -340,7 +368,7 @@ pub fn map_in_order_grouped<T: Send>(
     // writes the slots of its own indices, one answer each (checked as they come and at
     // its end): each slot is written once.
     unsafe {
-        in_slots(order.len(), |slots| {
+        in_slots_into(out, order.len(), |slots| {
             (0..order.len().div_ceil(group))
                 .into_par_iter()
                 .for_each(|g| {
@@ -381,17 +409,26 @@ pub const PREFETCH_GROUP: usize = 8;
 /// `len` answers that `fill` writes into their slots from any thread, as a vector.
 ///
 /// # Safety
-/// `fill` writes each of the slots `0..len` exactly once ([`Slots::write`]), or panics
-/// (then the answers written leak).
+/// As [`in_slots_into`]'s.
 unsafe fn in_slots<T: Send>(len: usize, fill: impl FnOnce(&Slots<T>)) -> Vec<T> {
-    use std::mem::MaybeUninit;
-    let mut out: Vec<MaybeUninit<T>> = Vec::with_capacity(len);
-    out.resize_with(len, MaybeUninit::uninit);
-    fill(&Slots(out.as_mut_ptr(), len));
-    // SAFETY: every slot was written once (the caller's contract), and `MaybeUninit<T>` has
-    // `T`'s size and alignment, so the buffer holds `len` initialised `T`s.
-    let mut out = std::mem::ManuallyDrop::new(out);
-    unsafe { Vec::from_raw_parts(out.as_mut_ptr().cast::<T>(), out.len(), out.capacity()) }
+    let mut out = Vec::new();
+    // SAFETY: the caller's contract.
+    unsafe { in_slots_into(&mut out, len, fill) };
+    out
+}
+
+/// [`in_slots`] into `out`, whose answers are replaced and whose buffer is kept.
+///
+/// # Safety
+/// `fill` writes each of the slots `0..len` exactly once ([`Slots::write`]), or panics
+/// (then `out` is left empty and the answers written leak).
+unsafe fn in_slots_into<T: Send>(out: &mut Vec<T>, len: usize, fill: impl FnOnce(&Slots<T>)) {
+    out.clear();
+    out.reserve(len);
+    fill(&Slots(out.spare_capacity_mut().as_mut_ptr(), len));
+    // SAFETY: the buffer holds at least `len` slots (reserved), and every one of the first
+    // `len` was written once (the caller's contract).
+    unsafe { out.set_len(len) };
 }
 
 /// The slots [`in_slots`] fills from several threads at once: a vector's buffer and its

@@ -4,6 +4,7 @@
 use super::common::*;
 use super::scenes::base64_encode;
 use super::stat::{Welch, assert_agrees};
+use anchorage::anchor::attach::SearchBuffers;
 use anchorage::compare::{Aov, rms_error_pct};
 use anchorage::integrator::FrameImage;
 use anchorage::pipeline;
@@ -412,20 +413,24 @@ fn gathering_a_batch_in_parts_changes_nothing() {
 
 /// A batch gathered a part at a time attaches part by part ([`Attacher::link_part`]
 /// between [`Attacher::begin`] and [`Attacher::end`]): the anchors, links and tree it leaves
-/// are those of the whole batch at once, whatever the parts' size.
+/// are those of the whole batch at once, whatever the parts' size, and whatever the
+/// searches' buffers held before (each batch here takes those the one before handed back,
+/// with shares of another size).
 #[test]
 fn a_batch_attaches_the_same_in_parts_of_any_size() {
     with_example_batch(|att, set, hits| {
         let mut whole = set.clone();
         let (ids, created) = att.link_all(&mut whole, hits);
-        for part in [1, 97, hits.len() / 3] {
+        let mut buffers = SearchBuffers::default();
+        for (part, share) in [(1, 64), (hits.len() / 3, 97), (97, 64)] {
             let mut parted = set.clone();
-            let mut linking = att.begin(&parted);
+            let mut linking = att.begin(&parted, buffers);
             let mut got = Vec::new();
             for p in hits.chunks(part) {
-                got.extend(att.link_part(&parted, &mut linking, p, 64));
+                got.extend(att.link_part(&parted, &mut linking, p, share));
             }
-            let made = att.end(&mut parted, linking);
+            let made;
+            (made, buffers) = att.end(&mut parted, linking);
             assert!(got == ids, "the hits' anchors, in parts of {part}");
             assert!(made == created, "the anchors made, in parts of {part}");
             assert!(parted == whole, "the anchor set, in parts of {part}");
