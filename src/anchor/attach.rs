@@ -515,7 +515,7 @@ pub const SEARCH_SHARE: usize = 1 << 18;
 /// different on Sponza, nor were the steps run a few hits apart, as a pipeline.)
 const SEARCH_GROUP: usize = 8;
 
-/// Bytes step 1 holds for a share of hits ([`SEARCH_SHARE`], [`ShareBuffers`]): what it
+/// Bytes step 1 holds for a share of hits ([`SEARCH_SHARE`], [`SearchBuffers`]): what it
 /// reads of each hit, the hit's position, sort key and place in the order, and what it
 /// found; two shares are held at once (one searched beside the last one's step 2), 55 MB.
 pub const SHARE_BYTES: usize = SEARCH_SHARE
