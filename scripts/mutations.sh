@@ -73,6 +73,7 @@ declare -A TESTS=(
   [grouped-map-next-empty]="lib:photon::knn"
   [normal-table-bytes-swapped]="lib:color::"
   [exact-segment-wrong-side]="lib:interaction::"
+  [search-buffers-not-swapped]="anchors::a_batch"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -87,7 +88,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   gather-estimate-unparted dynamic-radiance-dropped gather-search-uncounted
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
   grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
-  kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side)
+  kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
+  search-buffers-not-swapped)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
