@@ -63,8 +63,9 @@ pub fn oct_encode(n: Vec3) -> [u8; 2] {
 }
 
 /// [`oct_decode`] from a table of every code (768 KiB, made at first use): anchors decode
-/// their normal at each of attachment's reuse tests (§3.1), where the decode's square root
-/// and division took 8 % of the tests' samples in a profile of Sponza's frame 1.
+/// their normal at each of attachment's reuse tests (§3.1), where reading the anchor and
+/// decoding its normal (a square root and a division) took 8 % of step 1's samples in a
+/// profile of Sponza's frame 1.
 pub fn oct_decode_table(e: [u8; 2]) -> Vec3 {
     static TABLE: std::sync::LazyLock<Box<[Vec3]>> = std::sync::LazyLock::new(|| {
         (0..=u16::MAX)

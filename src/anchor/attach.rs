@@ -450,7 +450,7 @@ pub struct Linking {
 /// step 2 reads. They pass from share to share, part to part and batch to batch
 /// ([`Attacher::begin`], [`Attacher::end`]): fresh buffers, 27 MB a share, cost the kernel
 /// a fault and a zeroed page at each first touch of 4 KiB, and a frame attaches one batch
-/// for each round of placement, of a few shares each.
+/// for each round of placement.
 #[derive(Default)]
 pub struct SearchBuffers([ShareBuffers; 2]);
 
