@@ -11,7 +11,7 @@
 use glam::{Vec2, Vec3, Vec4};
 
 use crate::accel::{
-    Hit, SHADOW_EPSILON, barycentric, gamma, hit_point, interpolate, offset_ray_origin,
+    Hit, SHADOW_EPSILON, barycentric, gamma, hit_point, interpolate, lanes4, offset_ray_origin,
 };
 use crate::bsdf::{Bsdf, Lobes};
 use crate::geom::{Geometry, face_normal_area};
@@ -292,16 +292,16 @@ pub fn camera_hits4(
     frame: &FrameScene,
     film: [Option<FilmPosition>; 4],
 ) -> [Option<(CameraRay, Option<Hit>)>; 4] {
-    let rays = film.map(|f| f.map(|((x, y), known)| (frame.camera.ray(x, y), known)));
+    let rays = lanes4(|i| film[i].map(|((x, y), known)| (frame.camera.ray(x, y), known)));
     let traced = frame.accel.closest4_rays(
         &frame.static_geometry,
         &frame.dynamic_geometry,
-        rays.map(|r| match r {
+        lanes4(|i| match rays[i] {
             Some((r, None)) => Some((r.origin, r.dir, r.tmax)),
             _ => None,
         }),
     );
-    std::array::from_fn(|i| rays[i].map(|(r, known)| (r, known.unwrap_or(traced[i]))))
+    lanes4(|i| rays[i].map(|(r, known)| (r, known.unwrap_or(traced[i]))))
 }
 
 /// [`camera_hits4`] for every position of `film`, four at a time.

@@ -48,7 +48,7 @@ use obvhs::faststack::FastStack;
 use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 
-use super::{Lanes, ShearedRay, t_error};
+use super::{Lanes, ShearedRay, lanes4, t_error};
 use crate::geom::Geometry;
 
 #[cfg(target_arch = "x86_64")]
@@ -307,7 +307,7 @@ impl PairTree {
         srs: &[ShearedRay; 4],
         active: u32,
     ) -> [Option<(f32, u32)>; 4] {
-        let inv = |a: usize| Vec4::from_array(rays.map(|r| r.inv_direction[a]));
+        let inv = |a: usize| Vec4::from_array(lanes4(|i| rays[i].inv_direction[a]));
         let inv = [inv(0), inv(1), inv(2)];
         let o = rays[0].origin;
         if rays.iter().all(|r| r.origin == o) {
@@ -318,7 +318,7 @@ impl PairTree {
             }
             self.closest4_from(g, rays, srs, active, Narrow { origins: o, inv })
         } else {
-            let lanes = |a: usize| Vec4::from_array(rays.map(|r| r.origin[a]));
+            let lanes = |a: usize| Vec4::from_array(lanes4(|i| rays[i].origin[a]));
             let origins = [lanes(0), lanes(1), lanes(2)];
             self.closest4_from(g, rays, srs, active, Narrow { origins, inv })
         }
@@ -357,7 +357,7 @@ impl PairTree {
             tree: self,
             g,
             srs,
-            tmax: rays.map(|r| r.tmax),
+            tmax: lanes4(|i| rays[i].tmax),
             best: [None; 4],
         };
         let active = (0..4)

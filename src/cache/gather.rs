@@ -6,7 +6,7 @@ use glam::Vec3;
 
 use super::directional::stratum_direction;
 use super::{CacheParams, HIT_BACK, HIT_DYNAMIC, Record, Stratum};
-use crate::accel::Hit;
+use crate::accel::{Hit, lanes4};
 use crate::geom::{Motion, basis};
 use crate::interaction::SurfacePoint;
 use crate::sampling::Sampler;
@@ -281,9 +281,11 @@ pub fn trace_strata(
     // Four neighbouring strata at a time (two of a ring by two of the next), traced together.
     for j in (0..m).step_by(2) {
         for k in (0..n).step_by(2) {
-            let strata: [Option<u32>; 4] = [(0, 0), (0, 1), (1, 0), (1, 1)]
-                .map(|(dj, dk)| (j + dj < m && k + dk < n).then_some((j + dj) * n + k + dk));
-            let dirs = strata.map(|s| s.and_then(|s| rays.ray(s)).map(|r| r.1));
+            let strata: [Option<u32>; 4] = lanes4(|i| {
+                let (dj, dk) = ((i / 2) as u32, (i % 2) as u32);
+                (j + dj < m && k + dk < n).then_some((j + dj) * n + k + dk)
+            });
+            let dirs = lanes4(|i| strata[i].and_then(|s| rays.ray(s)).map(|r| r.1));
             let hits = frame.accel.closest4(
                 &frame.static_geometry,
                 &frame.dynamic_geometry,
