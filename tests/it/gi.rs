@@ -413,7 +413,6 @@ fn compare_reports_every_method_with_a_table_json_and_plot() {
 /// wherever a pixel's samples leave the surface its centre sees.
 #[test]
 fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
-    use anchorage::{pipeline, session::FrameState};
     // A pool of its own: in the global one a frame's parallel work can wait behind other
     // tests' jobs, and a wait in the little between the stages' spans would read as time
     // no stage holds.
@@ -421,77 +420,80 @@ fn uncached_samples_count_their_gather_rays_and_the_stages_add_up() {
         .num_threads(rayon::current_num_threads())
         .build()
         .unwrap();
-    pool.install(|| {
-        let tiny = r#","min_spacing_px":0.01,"max_spacing_px":0.01"#;
-        for method in ["brute-force", "anchors"] {
-            let job = super::anchors::example(method, tiny);
-            let strata = 8 * 24; // the draft preset's M·N
-            let scene = job.load_scene().unwrap();
-            let resources = pipeline::new_resources(&job, &scene).unwrap();
-            let mut state = FrameState::default();
-            // The stages' seconds and the frames', over both frames.
-            let (mut staged, mut framed) = (0.0, 0.0);
-            for frame in 0..2 {
-                let mut st = pipeline::new_stats(&job, frame);
-                let t0 = std::time::Instant::now();
-                pipeline::render_frame(&job, &scene, &resources, &mut state, frame, &mut st)
-                    .unwrap();
-                let elapsed = t0.elapsed().as_secs_f64();
-                let c = &st.counts;
-                eprintln!(
-                    "{method} frame {frame}: {} uncached samples, {} rays, {} prepare rays",
-                    c.uncached_samples, c.rays_shot, c.rays_reshot
-                );
-                if method == "brute-force" {
-                    assert!(c.uncached_samples > 0, "the test needs uncached samples");
-                    // Every record gathers every stratum once a frame.
-                    assert_eq!(c.rays_reshot, c.caches * strata);
-                    assert_eq!(c.rays_shot, (c.caches + c.uncached_samples) * strata);
-                } else {
-                    assert!(c.caches_spot_made > 0, "the test needs spot records");
-                    assert!(
-                        c.rays_shot
-                            >= (c.caches_spot_made + c.uncached_samples) * strata + c.rays_reshot
-                    );
-                    if frame == 0 {
-                        assert_eq!(c.rays_shot, (c.caches + c.uncached_samples) * strata);
-                    }
-                }
-                let t = &st.timings_s;
-                let rows = t.scene_evaluation
-                    + t.dynamic_bvh
-                    + t.photon_tracing
-                    + t.irradiance_estimation
-                    + t.attachment
-                    + t.integration
-                    + t.placement
-                    + t.upkeep
-                    + t.final_gathering
-                    + t.cache_interpolation
-                    + t.visibility
-                    + t.depth_maps
-                    + t.direct_lighting;
-                eprintln!("  stages {rows:.4} s of {elapsed:.4} s: {t:?}");
-                // Linking hits to anchors is a row of its own, taken out of the spans that time
-                // irradiance estimation.
-                assert_eq!(t.attachment > 0.0, method == "anchors", "{method}: {t:?}");
-                assert!(t.irradiance_estimation > 0.0, "{method}: {t:?}");
-                // Every frame integrates records: new ones, and brute force's all again.
-                assert!(t.integration > 0.0, "{method}: {t:?}");
-                // Every frame traces its pixel centres to place records, and drops expired ones.
-                assert!(t.placement > 0.0 && t.upkeep > 0.0, "{method}: {t:?}");
-                assert!(
-                    rows <= elapsed,
-                    "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
-                );
-                (staged, framed) = (staged + rows, framed + elapsed);
-            }
-            // Nothing of note is left untimed: the stages hold all but the little between
-            // their spans (about 1 % here; the margin is for a busy machine).
-            assert!(
-                staged >= 0.9 * framed,
-                "{method}: stages {staged} s of the frames' {framed} s"
+    pool.install(uncached_samples_and_stages);
+}
+
+/// The test above, run in its own pool.
+fn uncached_samples_and_stages() {
+    use anchorage::{pipeline, session::FrameState};
+    let tiny = r#","min_spacing_px":0.01,"max_spacing_px":0.01"#;
+    for method in ["brute-force", "anchors"] {
+        let job = super::anchors::example(method, tiny);
+        let strata = 8 * 24; // the draft preset's M·N
+        let scene = job.load_scene().unwrap();
+        let resources = pipeline::new_resources(&job, &scene).unwrap();
+        let mut state = FrameState::default();
+        // The stages' seconds and the frames', over both frames.
+        let (mut staged, mut framed) = (0.0, 0.0);
+        for frame in 0..2 {
+            let mut st = pipeline::new_stats(&job, frame);
+            let t0 = std::time::Instant::now();
+            pipeline::render_frame(&job, &scene, &resources, &mut state, frame, &mut st).unwrap();
+            let elapsed = t0.elapsed().as_secs_f64();
+            let c = &st.counts;
+            eprintln!(
+                "{method} frame {frame}: {} uncached samples, {} rays, {} prepare rays",
+                c.uncached_samples, c.rays_shot, c.rays_reshot
             );
+            if method == "brute-force" {
+                assert!(c.uncached_samples > 0, "the test needs uncached samples");
+                // Every record gathers every stratum once a frame.
+                assert_eq!(c.rays_reshot, c.caches * strata);
+                assert_eq!(c.rays_shot, (c.caches + c.uncached_samples) * strata);
+            } else {
+                assert!(c.caches_spot_made > 0, "the test needs spot records");
+                assert!(
+                    c.rays_shot
+                        >= (c.caches_spot_made + c.uncached_samples) * strata + c.rays_reshot
+                );
+                if frame == 0 {
+                    assert_eq!(c.rays_shot, (c.caches + c.uncached_samples) * strata);
+                }
+            }
+            let t = &st.timings_s;
+            let rows = t.scene_evaluation
+                + t.dynamic_bvh
+                + t.photon_tracing
+                + t.irradiance_estimation
+                + t.attachment
+                + t.integration
+                + t.placement
+                + t.upkeep
+                + t.final_gathering
+                + t.cache_interpolation
+                + t.visibility
+                + t.depth_maps
+                + t.direct_lighting;
+            eprintln!("  stages {rows:.4} s of {elapsed:.4} s: {t:?}");
+            // Linking hits to anchors is a row of its own, taken out of the spans that time
+            // irradiance estimation.
+            assert_eq!(t.attachment > 0.0, method == "anchors", "{method}: {t:?}");
+            assert!(t.irradiance_estimation > 0.0, "{method}: {t:?}");
+            // Every frame integrates records: new ones, and brute force's all again.
+            assert!(t.integration > 0.0, "{method}: {t:?}");
+            // Every frame traces its pixel centres to place records, and drops expired ones.
+            assert!(t.placement > 0.0 && t.upkeep > 0.0, "{method}: {t:?}");
+            assert!(
+                rows <= elapsed,
+                "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
+            );
+            (staged, framed) = (staged + rows, framed + elapsed);
         }
-    });
+        // Nothing of note is left untimed: the stages hold all but the little between
+        // their spans (about 1 % here; the margin is for a busy machine).
+        assert!(
+            staged >= 0.9 * framed,
+            "{method}: stages {staged} s of the frames' {framed} s"
+        );
+    }
 }
