@@ -459,7 +459,7 @@ impl Tables {
     /// `p` in `[1, x, z, xz, x², y², z²]`, with `w = (1 − x_s)·D·V` for A and `x_s·D·V` for B
     /// (`x_s` the Schlick weight), so that the lobe of f0, f90 reflects `f0·(A·c) + f90·(B·c)`
     /// of a radiance `c·p` ([`crate::cache::directional`]). The moments of y, xy and yz
-    /// vanish by symmetry. The first entries are [`Tables::specular`]'s A and B.
+    /// vanish by symmetry. The first entries are `Tables::specular`'s A and B.
     pub fn glossy_moments(&self, mu: f32, roughness: f32) -> [[f32; 7]; 2] {
         let (i, s) = locate(mu);
         let (j, t) = locate(roughness);

@@ -7,7 +7,7 @@
 //! stratification in every 4-D slice, decorrelated per pixel by the scramble seed.
 //!
 //! The crate's sampler walks the sample index's bits (up to 16 steps per value); for the
-//! first [`TABLE_DIMS`] dimensions — camera jitter, light samples, the first bounces — this
+//! first `TABLE_DIMS` dimensions — camera jitter, light samples, the first bounces — this
 //! module reads the same Sobol values from two 256-entry tables per dimension instead (a
 //! Sobol value is the XOR of the direction vectors of the index's set bits, so it is the
 //! XOR of its two index bytes' partial values). The values are the crate's, bit for bit.

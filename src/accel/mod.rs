@@ -171,7 +171,7 @@ impl ShearedRay {
     /// test watertight). `t` is trusted when it exceeds its own error bound δt (pbrt-v4
     /// §6.8.7, `IntersectTriangle`); a `t` within ±δt of zero — a ray leaving the surface it
     /// starts on, or a true hit very close to its origin — is decided again in f64
-    /// ([`Self::plane_t64`]) instead of being dropped.
+    /// (`Self::plane_t64`) instead of being dropped.
     #[inline]
     pub fn intersect(&self, tri: &Triangle, tmax: f32) -> f32 {
         self.intersect_barycentric(tri, tmax).0

@@ -48,11 +48,11 @@ impl IrradianceCache {
     /// Neighbour clamping (Křivánek, Bouatouch, Pattanaik & Žára, "Making Radiance and
     /// Irradiance Caching Practical", 2006): R_i ≤ R_j + s·|x_i − x_j| for every record j
     /// within the reach of record i on a surface facing the same way, s the slope
-    /// [`CacheParams::neighbour_clamp`] (0: off). Křivánek et al. use 1; 2, the default,
-    /// keeps most of the effect at contacts with 40 % fewer records (the example's frame 36
-    /// at 320 × 240, brute force: the band above the sliding cube's base reads 2.5 % above a
-    /// path-traced reference with 1, 4 % with 2, 7 % without clamping; 5 340, 3 210 and
-    /// 2 085 records; 4.95, 3.21 and 2.32 s). Ward's
+    /// [`super::CacheParams::neighbour_clamp`] (0: off). Křivánek et al. use 1; 2, the
+    /// default, keeps most of the effect at contacts with 40 % fewer records (the example's
+    /// frame 36 at 320 × 240, brute force: the band above the sliding cube's base reads
+    /// 2.5 % above a path-traced reference with 1, 4 % with 2, 7 % without clamping; 5 340,
+    /// 3 210 and 2 085 records; 4.95, 3.21 and 2.32 s). Ward's
     /// harmonic-mean R_i sees only what the record's own rays hit: a record a little above
     /// a contact (a box's side above the floor) has a large R_i and is valid down into the
     /// contact, where irradiance falls off faster than its gradient says, while the records

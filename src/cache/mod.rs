@@ -11,7 +11,7 @@
 //! to a range of pixel footprints (Tabellion & Lamorlette 2004), so density follows the image,
 //! and by the neighbouring records' radii (Křivánek et al. 2006), so that records stop short
 //! of a contact where their neighbours' radii are small
-//! ([`IrradianceCache::clamp_to_neighbours`]). No crate offers an irradiance cache; the
+//! (`IrradianceCache::clamp_to_neighbours`). No crate offers an irradiance cache; the
 //! grid, the clamping and the placement follow the papers cited at each.
 //!
 
@@ -59,7 +59,7 @@ pub struct CacheParams {
     /// after the frame; 0 turns the rule off. Default 0.5.
     pub weber_threshold: f32,
     /// Neighbour clamping's slope s: a record's radius is at most a neighbour's plus s times
-    /// their distance ([`IrradianceCache::clamp_to_neighbours`]); 0 turns it off. Default 2.
+    /// their distance (`IrradianceCache::clamp_to_neighbours`); 0 turns it off. Default 2.
     pub neighbour_clamp: f32,
     /// Placement counts a pixel centre as covered where a record made for an earlier frame,
     /// none of whose strata reach a dynamic prim, is valid to this multiple of a (its
@@ -250,7 +250,7 @@ pub const RELAXED: f32 = REACH;
 /// [`Record::last_used`] of a record [`IrradianceCache::retire`] marked.
 const RETIRED: i32 = i32::MIN;
 
-/// Rounds of [`IrradianceCache::place_at_samples`] at most.
+/// Rounds of `IrradianceCache::place_at_samples` at most.
 pub const SAMPLE_ROUNDS: usize = 4;
 
 /// World size of one pixel at `x` as seen by `camera` for an image `height` pixels tall.
@@ -667,7 +667,7 @@ impl IrradianceCache {
     }
 
     /// Places new records where the image needs them (module doc): levels of `2^l`-pixel
-    /// grids from `coarsest` down to 1, then [`IrradianceCache::place_at_samples`] for
+    /// grids from `coarsest` down to 1, then `IrradianceCache::place_at_samples` for
     /// `samples`, the points off the pixel centres where this frame's camera samples will
     /// read the cache (with spot records for those no other record covers, with `spot`). The
     /// grids' points are pixel centres, whose hits `centres` holds.
@@ -949,7 +949,7 @@ impl IrradianceCache {
     /// Replaces every record. Records in the same places as before (count, order, positions
     /// and normals: the anchor method's update of each frame) keep both grids: where
     /// re-shot strata changed some Ward radii, the clamp is brought up to date around them
-    /// ([`IrradianceCache::reclamp`]); anything else rebuilds the grids.
+    /// (`IrradianceCache::reclamp`); anything else rebuilds the grids.
     pub fn replace_records(&mut self, records: Vec<Record>) {
         let old: Vec<Placed> = self.records.iter().map(Placed::of).collect();
         self.records = records;

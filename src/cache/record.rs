@@ -203,9 +203,9 @@ pub struct Record {
     /// mirrored exports, Sponza's LOD among them) show them to the room, and photons land on
     /// them from that side.
     pub enclosed: bool,
-    /// A spot record ([`IrradianceCache::interpolate_spot`]): made for a camera sample that
-    /// no other record covers, valid out to its own Ward radius (not widened to the minimum
-    /// spacing), and read only by such samples. Interpolation, placement, neighbour
+    /// A spot record ([`super::IrradianceCache::interpolate_spot`]): made for a camera
+    /// sample that no other record covers, valid out to its own Ward radius (not widened to
+    /// the minimum spacing), and read only by such samples. Interpolation, placement, neighbour
     /// clamping and the Weber rule ignore it, as they ignore enclosed records.
     pub spot: bool,
 }
@@ -246,7 +246,7 @@ impl Record {
     }
 
     /// First-order irradiance at (x, n) from the record's gradients (Ward & Heckbert 1992):
-    /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as [`gradients`] computes it.
+    /// E_i + (n × n_i)·∇_r E_i + (x − x_i)·∇_t E_i, with ∇_r as `gradients` computes it.
     pub fn extrapolate(&self, x: Vec3, n: Vec3) -> Vec3 {
         let rot = n.cross(self.normal);
         let dx = x - self.position;

@@ -111,7 +111,7 @@ impl BucketPlan {
 
 /// Plans the glossy lobe's bucketing at `at` towards `wo` (`bsdf` its BRDF about the shading
 /// normal `ns`) from the records valid there (error threshold `a`): the BRDF's weight per cell,
-/// the cells that carry [`LOBE_SHARE`] of it, and one depth query per mapped cell above the
+/// the cells that carry `LOBE_SHARE` of it, and one depth query per mapped cell above the
 /// geometric horizon. `None` where no record is valid.
 pub fn plan(
     cache: &IrradianceCache,

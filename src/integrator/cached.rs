@@ -1,7 +1,7 @@
 //! The methods that shade from the irradiance cache: `brute-force`, `precomputed` and
 //! `anchors`. Each frame has two phases. *Prepare*: trace the photons (§4.2), then bring
 //! the cache up to date — brute force and precomputed re-gather every stratum of every
-//! record and place new records ([`prepare_brute_force`]), anchors run Pseudocode 2
+//! record and place new records (`prepare_brute_force`), anchors run Pseudocode 2
 //! ([`super::anchors::update`]). *Shade*: direct light by shadow rays at each camera hit, and
 //! the indirect light interpolated from the cache ([`CachedShading`]).
 //!
@@ -841,11 +841,11 @@ impl CachedPixel {
 }
 
 /// The points off the pixel centres where this frame's camera samples will read the cache,
-/// found by the shading's own choices ([`CachedPixel::shading_point`],
-/// [`CachedPixel::reuses_last`]) without shading: the cache places records for those no
+/// found by the shading's own choices (`CachedPixel::shading_point`,
+/// `CachedPixel::reuses_last`) without shading: the cache places records for those no
 /// record covers ([`IrradianceCache::place`]), so that the shading rarely has to gather on
 /// the spot. In pixel order. Only pixels whose centre sees another surface than a
-/// neighbouring centre (another prim, a normal turned past [`SAME_FACING`], or nothing
+/// neighbouring centre (another prim, a normal turned past `SAME_FACING`, or nothing
 /// beside something) have their samples traced: inside a surface every sample reads the
 /// cache at its pixel centre, and inside the empty background none reads it. A feature
 /// smaller than a pixel that no centre sees is missed, and its samples gather on the spot

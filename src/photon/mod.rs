@@ -4,7 +4,7 @@
 //! Photons leave the lights in proportion to their power and are traced with a quasi-Monte
 //! Carlo sequence indexed by photon number, seeded by the job's seed but *not* by the frame:
 //! photon `i` follows the same path in every frame where the geometry it meets did not
-//! change, which the anchors rely on (§4.2, [Chr02]). Every diffuse hit stores the photon
+//! change, which the anchors rely on (§4.2, \[Chr02\]). Every diffuse hit stores the photon
 //! (the first hit included: final-gather hits need the direct illumination there too),
 //! weighted by how the hit's shading normal sees it (Veach 1997, §5.3), as the path tracer
 //! and the direct light do; Russian roulette by albedo decides whether it bounces on.
@@ -20,7 +20,7 @@
 //! another surface — a lamp 0.9 units under a ceiling must not count the dense photons
 //! its back side leaves on the ceiling as light arriving at its front. Near a crease the
 //! disc reaches past the end of its surface; the estimate divides by the part of the disc
-//! that lies on it, which the photons on the other surface delimit ([`SurfaceClip`]).
+//! that lies on it, which the photons on the other surface delimit (`SurfaceClip`).
 
 pub mod knn;
 pub mod precomputed;
@@ -271,7 +271,7 @@ impl SurfaceClip {
     }
 
     /// The power of the photons `on_disc` (position, power) that lie on the kept side of
-    /// every line, summed in their order, and the area there ([`SurfaceClip::area`]).
+    /// every line, summed in their order, and the area there (`SurfaceClip::area`).
     fn kept(&self, on_disc: &[(Vec3, Vec3)]) -> (Vec3, f32) {
         self.with_lanes(|lanes| {
             let sum = on_disc
@@ -332,7 +332,7 @@ impl SurfaceClip {
         self.with_lanes(|lanes| self.area_in(lanes))
     }
 
-    /// [`SurfaceClip::area`], the lines laid out in `lanes` ([`SurfaceClip::with_lanes`]).
+    /// `SurfaceClip::area`, the lines laid out in `lanes` ([`SurfaceClip::with_lanes`]).
     fn area_in(&self, lanes: &[ClipLanes]) -> f32 {
         let full = PI * self.r * self.r;
         let area = match self.lines[..] {
@@ -348,7 +348,7 @@ impl SurfaceClip {
         area.max(CLIP_MIN_SHARE * full)
     }
 
-    /// [`SurfaceClip::area`] where two or more lines cut the disc, exactly (up to rounding).
+    /// `SurfaceClip::area` where two or more lines cut the disc, exactly (up to rounding).
     ///
     /// The kept region is convex and holds the centre, so its boundary, seen from the
     /// centre, is a sequence of pieces of the lines and arcs of the rim that together turn
@@ -705,7 +705,7 @@ impl PhotonMap {
     /// [`PhotonMap::irradiance`] and the squared radius of the disc it gathered over: the
     /// estimate depends on no photon farther away. The disc reaches the k-th nearest photon
     /// within [`PhotonMap::max_radius`], or that radius where fewer lie within it; the
-    /// estimate divides by the part of it on the query's surface ([`SurfaceClip`]).
+    /// estimate divides by the part of it on the query's surface (`SurfaceClip`).
     pub fn irradiance_and_radius(&self, x: Vec3, n: Vec3, k: usize) -> (Vec3, f32) {
         let r2_max = self.max_radius * self.max_radius;
         let k = k.max(1);

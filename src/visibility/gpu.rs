@@ -1,5 +1,5 @@
 //! Visibility detection on the GPU (the paper's §3.2) with wgpu: the second implementation
-//! of [`Visibility`], running the rule of [`super::visibility`] in a compute shader
+//! of [`Visibility`], running the rule of [`crate::visibility`] in a compute shader
 //! (`shaders/visibility.wgsl`).
 //!
 //! The paper renders the dynamic objects into a 32×32 or 64×64 hemisphere map per cache and
