@@ -2,7 +2,8 @@
 // dynamic triangle. One invocation per (record, triangle) pair rasterises the triangle's
 // cap onto the record's stratum grid and sets one bit per covered stratum. This mirrors
 // `cover` and `sphere_cap` in src/visibility/mod.rs line by line; the module doc there
-// states the rule and why it is conservative.
+// states the rule and why it is conservative. It tests every triangle, also those of a
+// closed prim that the CPU leaves out (`faces_away`), so that its flags stay a superset.
 
 struct Params {
     // Records in this dispatch, starting at `record_offset`.

@@ -191,6 +191,21 @@ fn skinned_mesh_deforms_over_time() {
     assert!(hi - lo > 1.0 && hi - lo < 3.0, "extent {lo}..{hi}");
 }
 
+/// A skinned character closes up at every pose: the triangles that meet at a vertex split
+/// for its texture move with the same joints and weights, so they still share it bit for
+/// bit, and visibility detection leaves out the triangles facing away from a record.
+#[test]
+fn a_skinned_character_stays_closed_as_it_moves() {
+    let scene = scene_job("CesiumMan/CesiumMan.gltf")
+        .load_scene_layers()
+        .unwrap();
+    let (t0, t1) = scene.time_range().unwrap();
+    for t in [t0, 0.37 * (t0 + t1), 0.5 * (t0 + t1), t1] {
+        let set = anchorage::visibility::DynamicSet::new(&scene.geometry(t, Motion::Dynamic));
+        assert_eq!(set.closed, [true], "at t = {t}");
+    }
+}
+
 /// Morph targets: a scene written here with one target animated from weight 0 to 1.
 #[test]
 fn morph_target_weights_move_vertices() {
@@ -284,8 +299,8 @@ fn sha256_matches_the_standard_test_vectors() {
     );
 }
 
-/// Every scene file the tests and the Sponza bench read is in `tests/scenes/manifest.tsv`,
-/// and every row says where the file comes from.
+/// Every scene file the tests and the Sponza benches (`benches/sponza/*.json`) read is in
+/// `tests/scenes/manifest.tsv`, and every row says where the file comes from.
 #[test]
 fn scene_manifest_lists_every_scene_read_with_its_source() {
     let manifest = scene_manifest();
@@ -298,18 +313,26 @@ fn scene_manifest_lists_every_scene_read_with_its_source() {
             "{rel} is not in tests/scenes/manifest.tsv"
         );
     }
-    let bench: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join("benches/sponza/job.json")).unwrap(),
-    )
-    .unwrap();
-    for layer in bench["scene"].as_array().unwrap() {
-        let path = layer["path"].as_str().unwrap();
-        if let Some((_, rel)) = path.split_once("shared/scenes/") {
-            let (folder, file) = rel.split_once('/').unwrap();
-            assert!(
-                listed(folder, file),
-                "bench scene {rel} is not in the manifest"
-            );
+    let jobs = std::fs::read_dir(root().join("benches/sponza")).unwrap();
+    for job in jobs.map(|e| e.unwrap().path()) {
+        if job.extension().is_none_or(|e| e != "json") {
+            continue;
+        }
+        let bench: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&job).unwrap()).unwrap();
+        let Some(layers) = bench["scene"].as_array() else {
+            continue;
+        };
+        for layer in layers {
+            let path = layer["path"].as_str().unwrap();
+            if let Some((_, rel)) = path.split_once("shared/scenes/") {
+                let (folder, file) = rel.split_once('/').unwrap();
+                assert!(
+                    listed(folder, file),
+                    "{}: bench scene {rel} is not in the manifest",
+                    job.display()
+                );
+            }
         }
     }
     let hex = |s: &str, n: usize| s.len() == n && s.bytes().all(|b| b.is_ascii_hexdigit());
