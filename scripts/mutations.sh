@@ -75,6 +75,8 @@ declare -A TESTS=(
   [exact-segment-wrong-side]="lib:interaction::"
   [search-buffers-not-swapped]="anchors::a_batch"
   [four-lanes-swapped]="lib:accel::"
+  [faces-away-open-prims]="lib:visibility::tests"
+  [faces-away-inside-sphere]="lib:visibility::tests"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -90,7 +92,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
   grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
   kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
-  search-buffers-not-swapped four-lanes-swapped)
+  search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
