@@ -3,7 +3,8 @@
 // cap onto the record's stratum grid and sets one bit per covered stratum. This mirrors
 // `cover` and `sphere_cap` in src/visibility/mod.rs line by line; the module doc there
 // states the rule and why it is conservative. It tests every triangle, also those of a
-// closed prim that the CPU leaves out (`faces_away`), so that its flags stay a superset.
+// closed prim and of a run of triangles that the CPU leaves out (`faces_away`,
+// `adds_nothing`), so that its flags stay a superset.
 
 struct Params {
     // Records in this dispatch, starting at `record_offset`.

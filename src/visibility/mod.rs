@@ -39,6 +39,13 @@
 //! stay conservative (tested on concave prims wound either way, some around records).
 //! The GPU tests every triangle.
 //!
+//! Clusters. The CPU takes a prim's triangles in runs of [`CLUSTER`], each with a bounding
+//! sphere, and passes over a run when the record's bits hold every cell through which it
+//! can see a point of that sphere ([`adds_nothing`]): from far away a character's
+//! thousands of triangles fall into a few cells, which its first triangles set. The
+//! flags stay conservative; beyond the cells a run can be seen through, its triangles
+//! could add only cells their bounding caps reach and no ray of the run's meets.
+//!
 //! Both implementations share the rule with a *slack* that loosens every comparison (in
 //! cosine units, so it must stay small against 1 − cos β of the narrowest quarter): the
 //! GPU's slack is three times the CPU's, larger than the rounding differences between the
@@ -144,6 +151,24 @@ pub struct DynamicSet {
     /// Per prim, whether its triangles close up ([`closes_up`]), so that a record outside
     /// its sphere need not test the ones facing away ([`faces_away`]).
     pub closed: Vec<bool>,
+    /// Per prim, its triangles in runs of at most [`CLUSTER`] (in `triangles`), each with a
+    /// bounding sphere ([`adds_nothing`]).
+    pub clusters: Vec<Vec<(Bound, std::ops::Range<usize>)>>,
+}
+
+/// Triangles a cluster of [`DynamicSet::clusters`] holds at most: consecutive ones of a
+/// prim, which meshes list near one another.
+pub const CLUSTER: usize = 32;
+
+/// A bounding sphere of `points`, padded so that rounding cannot shrink it.
+fn bound(points: impl Iterator<Item = Vec3>) -> Bound {
+    let (lo, hi) = points.fold(
+        (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
+        |(lo, hi), v| (lo.min(v), hi.max(v)),
+    );
+    let centre = 0.5 * (lo + hi);
+    let radius = 0.5 * (hi - lo).length() * (1.0 + 1e-5) + centre.abs().max_element() * 1e-6;
+    Bound { centre, radius }
 }
 
 impl DynamicSet {
@@ -158,17 +183,18 @@ impl DynamicSet {
         }
         let mut set = DynamicSet::default();
         for tris in by_prim.into_values() {
-            let (lo, hi) = tris.iter().flatten().fold(
-                (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
-                |(lo, hi), &v| (lo.min(v), hi.max(v)),
-            );
-            let centre = 0.5 * (lo + hi);
-            // Pad by a relative epsilon so that rounding cannot shrink the sphere.
-            let radius =
-                0.5 * (hi - lo).length() * (1.0 + 1e-5) + centre.abs().max_element() * 1e-6;
-            set.prims.push(Bound { centre, radius });
+            set.prims.push(bound(tris.iter().flatten().copied()));
             set.closed.push(closes_up(&tris));
             let start = set.triangles.len();
+            set.clusters.push(
+                tris.chunks(CLUSTER)
+                    .enumerate()
+                    .map(|(i, c)| {
+                        let first = start + i * CLUSTER;
+                        (bound(c.iter().flatten().copied()), first..first + c.len())
+                    })
+                    .collect(),
+            );
             set.triangles.extend(tris);
             set.ranges.push(start..set.triangles.len());
         }
@@ -563,6 +589,73 @@ pub fn cover(
         (0..h.len()).for_each(|c| bits.set(c));
         return;
     };
+    cells_near(h, &cull, slack, |j, cell| {
+        if bits.get(cell) {
+            return true;
+        }
+        let hit = (0..4).any(|i| {
+            let c = h.quarters[4 * cell + i];
+            let half = &h.half_rows[2 * j + i / 2];
+            tri_cap.is_none_or(|cap| overlaps(&cap, half, c, slack))
+                && exact.as_ref().is_none_or(|t| t.near(half, c, slack))
+                && sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
+        });
+        if hit {
+            bits.set(cell);
+        }
+        true
+    });
+}
+
+/// Whether `bits` already holds every cell through which `f` can see a point of `ball`
+/// (so that [`CpuVisibility`] passes over the triangles within it): the cells with a
+/// quarter whose cap (module doc: it holds the whole quarter) meets the ball's cap of
+/// directions, grown by 10⁻³ (far more than rounding moves either side). What [`cover`]
+/// would add for those triangles beyond them lies outside every direction that meets
+/// one, so the flags stay conservative. Only for balls seen narrower than 60°.
+pub fn adds_nothing(
+    h: &Hemisphere,
+    f: &RecordFrame,
+    ball: Bound,
+    slack: f32,
+    bits: &StrataBits,
+) -> bool {
+    let v = ball.centre - f.x;
+    let d = v.length();
+    let sin = ball.radius / d;
+    // (Also false where the record lies in the ball, or d is zero or not finite.)
+    if !(sin < 0.5) {
+        return false;
+    }
+    let grown = sin.asin() + 1e-3;
+    let cap = Cap {
+        axis: f.local(v / d),
+        cos: grown.cos(),
+        sin: grown.sin(),
+    };
+    let mut adds = false;
+    cells_near(h, &cap, slack, |j, cell| {
+        if !bits.get(cell) {
+            adds = (0..4).any(|i| {
+                overlaps(
+                    &cap,
+                    &h.half_rows[2 * j + i / 2],
+                    h.quarters[4 * cell + i],
+                    slack,
+                )
+            });
+        }
+        !adds
+    });
+    !adds
+}
+
+/// Visits `(row, cell)` for the cells of `h` that a quarter's cap meeting `cull` may lie
+/// in, row by row like a rasteriser's bounding box (module doc): the rows whose best cell
+/// can reach the cap, and in each the columns whose azimuth can, with one column of margin
+/// (the visitor's tests decide). `visit` returns false to stop.
+#[inline(always)]
+fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usize, usize) -> bool) {
     let n = h.n as i32;
     let dphi = 2.0 * std::f32::consts::PI / h.n as f32;
     let rho = (cull.axis.x * cull.axis.x + cull.axis.y * cull.axis.y).sqrt();
@@ -596,19 +689,8 @@ pub fn cover(
             (k0, k1)
         };
         for k in k0..=k1 {
-            let cell = j * h.n as usize + k.rem_euclid(n) as usize;
-            if bits.get(cell) {
-                continue;
-            }
-            let hit = (0..4).any(|i| {
-                let c = h.quarters[4 * cell + i];
-                let half = &h.half_rows[2 * j + i / 2];
-                tri_cap.is_none_or(|cap| overlaps(&cap, half, c, slack))
-                    && exact.as_ref().is_none_or(|t| t.near(half, c, slack))
-                    && sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
-            });
-            if hit {
-                bits.set(cell);
+            if !visit(j, j * h.n as usize + k.rem_euclid(n) as usize) {
+                return;
             }
         }
     }
@@ -712,8 +794,17 @@ pub(crate) mod testing {
     /// is computed once per position, so that the triangles meeting there share it bit for
     /// bit, as a mesh's split vertices do.
     pub fn closed_scene(seed: u32, prims: u32, records: u32) -> (Geometry, Vec<(Vec3, Vec3)>) {
+        closed_scene_of(seed, prims, [6, 8], records)
+    }
+
+    /// [`closed_scene`] with spheres of `rings` rings of `around` quads.
+    pub fn closed_scene_of(
+        seed: u32,
+        prims: u32,
+        [rings, around]: [u32; 2],
+        records: u32,
+    ) -> (Geometry, Vec<(Vec3, Vec3)>) {
         let r = |i, d| r(seed, i, d);
-        let (rings, around) = (6u32, 8u32);
         let mut g = Geometry::default();
         for p in 0..prims {
             let c = Vec3::new(
@@ -731,7 +822,7 @@ pub(crate) mod testing {
                 };
                 let theta = ring as f32 / rings as f32 * std::f32::consts::PI;
                 let phi = k as f32 / around as f32 * 2.0 * std::f32::consts::PI;
-                let i = p * 1000 + ring * around + k;
+                let i = p * 100_000 + ring * around + k;
                 let radius = size * (0.4 + 0.6 * r(i, 10));
                 c + radius
                     * Vec3::new(
@@ -917,6 +1008,54 @@ mod tests {
             let all = CpuVisibility.flag(&records, strata, &every).unwrap();
             assert!(flags.iter().zip(&all).all(|(f, a)| a.contains(f)));
         }
+    }
+
+    /// Finely meshed prims (720 triangles each, 23 clusters) seen from up to a few sizes
+    /// away: the CPU passes over the clusters whose cells are set already, and its flags
+    /// stay conservative and the same as those of every triangle tested one by one.
+    #[test]
+    fn clusters_whose_cells_are_set_are_passed_over() {
+        let strata = [12u32, 36u32];
+        let (g, records) = closed_scene_of(13, 4, [16, 24], 24);
+        let set = DynamicSet::new(&g);
+        assert!(set.clusters.iter().all(|c| c.len() == 23));
+        let flags = CpuVisibility.flag(&records, strata, &set).unwrap();
+        assert!(assert_conservative(&g, &records, strata, &flags) > 100);
+        // Every triangle its own cluster, each of which adds something where it is tested.
+        let h = Hemisphere::new(strata);
+        let one_by_one = records
+            .iter()
+            .map(|&(x, n)| {
+                let f = RecordFrame::new(x, n);
+                let mut bits = StrataBits::new(h.len());
+                for (prim, range) in set.prims.iter().zip(&set.ranges) {
+                    if let Some(sphere) = sphere_cap(&f, *prim, CPU_SLACK).visible() {
+                        for tri in &set.triangles[range.clone()] {
+                            cover(&h, &f, sphere, tri, CPU_SLACK, &mut bits);
+                        }
+                    }
+                }
+                bits
+            })
+            .collect::<Vec<_>>();
+        assert_eq!(flags, one_by_one);
+        // The clusters are narrow enough to be passed over from most records, and the
+        // final flags hold every cell of most of them.
+        let passed = records
+            .iter()
+            .zip(&flags)
+            .flat_map(|(&(x, n), bits)| {
+                let f = RecordFrame::new(x, n);
+                let h = &h;
+                set.clusters
+                    .iter()
+                    .flatten()
+                    .map(move |(ball, _)| adds_nothing(h, &f, *ball, CPU_SLACK, bits))
+            })
+            .filter(|&a| a)
+            .count();
+        let all = records.len() * set.clusters.iter().map(Vec::len).sum::<usize>();
+        assert!(passed * 2 > all, "{passed} of {all} clusters add nothing");
     }
 
     /// A record beside a small triangle: only the strata around its direction are flagged,
