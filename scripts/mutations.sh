@@ -77,6 +77,7 @@ declare -A TESTS=(
   [four-lanes-swapped]="lib:accel::"
   [faces-away-open-prims]="lib:visibility::tests"
   [faces-away-inside-sphere]="lib:visibility::tests"
+  [cluster-cap-halved]="lib:visibility::tests"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -92,7 +93,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   checkpoint-written-whole checkpoint-read-whole wide-pair-one-shear wide-boxes-one-child
   grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
   kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
-  search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere)
+  search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere
+  cluster-cap-halved)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
