@@ -742,6 +742,28 @@ pub(crate) mod testing {
         crate::sampling::hash(&[seed, i, d]) as f32 / u32::MAX as f32
     }
 
+    /// Prim `p`'s centre: x and z in [-2, 2], y `height[1]` + up to `height[0]`.
+    fn prim_centre(seed: u32, p: u32, height: [f32; 2]) -> Vec3 {
+        Vec3::new(
+            r(seed, p, 0) * 4.0 - 2.0,
+            r(seed, p, 1) * height[0] + height[1],
+            r(seed, p, 2) * 4.0 - 2.0,
+        )
+    }
+
+    /// Adds a triangle of prim `prim` to `g`, facing up for shading.
+    fn push_triangle(g: &mut Geometry, [a, b, c]: [Vec3; 3], prim: u32) {
+        g.triangles.push(triangle(a, b, c));
+        g.shading.push(TriangleShading {
+            normals: [Vec3::Y; 3],
+            uvs: [Vec2::ZERO; 3],
+            material: 0,
+            prim,
+            masked: false,
+            attributes: crate::geom::NO_ATTRIBUTES,
+        });
+    }
+
     /// `prims` random prims of `tris` triangles each above (and some through) the floor
     /// y = 0, and `records` records on the floor with tilted normals, all in [-2, 2]².
     pub fn random_scene(
@@ -753,26 +775,14 @@ pub(crate) mod testing {
         let r = |i, d| r(seed, i, d);
         let mut g = Geometry::default();
         for p in 0..prims {
-            let c = Vec3::new(
-                r(p, 0) * 4.0 - 2.0,
-                r(p, 1) * 2.0 - 0.1,
-                r(p, 2) * 4.0 - 2.0,
-            );
+            let c = prim_centre(seed, p, [2.0, -0.1]);
             let size = 0.2 + r(p, 3);
             for t in 0..tris {
                 let i = p * 1000 + t;
                 let v = |k: u32| {
                     c + Vec3::new(r(i, 10 + k) - 0.5, r(i, 20 + k) - 0.5, r(i, 30 + k) - 0.5) * size
                 };
-                g.triangles.push(triangle(v(0), v(1), v(2)));
-                g.shading.push(TriangleShading {
-                    normals: [Vec3::Y; 3],
-                    uvs: [Vec2::ZERO; 3],
-                    material: 0,
-                    prim: p,
-                    masked: false,
-                    attributes: crate::geom::NO_ATTRIBUTES,
-                });
+                push_triangle(&mut g, [v(0), v(1), v(2)], p);
             }
         }
         let recs = (0..records)
@@ -807,11 +817,7 @@ pub(crate) mod testing {
         let r = |i, d| r(seed, i, d);
         let mut g = Geometry::default();
         for p in 0..prims {
-            let c = Vec3::new(
-                r(p, 0) * 4.0 - 2.0,
-                r(p, 1) * 1.2 - 0.4,
-                r(p, 2) * 4.0 - 2.0,
-            );
+            let c = prim_centre(seed, p, [1.2, -0.4]);
             let size = 0.3 + 0.5 * r(p, 3);
             // Ring 0 and ring `rings` are the poles.
             let vertex = |ring: u32, k: u32| {
@@ -834,15 +840,7 @@ pub(crate) mod testing {
             let inwards = p % 2 == 1;
             let mut push = |a: Vec3, b: Vec3, d: Vec3| {
                 let (b, d) = if inwards { (d, b) } else { (b, d) };
-                g.triangles.push(triangle(a, b, d));
-                g.shading.push(TriangleShading {
-                    normals: [Vec3::Y; 3],
-                    uvs: [Vec2::ZERO; 3],
-                    material: 0,
-                    prim: p,
-                    masked: false,
-                    attributes: crate::geom::NO_ATTRIBUTES,
-                });
+                push_triangle(&mut g, [a, b, d], p);
             };
             for ring in 0..rings {
                 for k in 0..around {
