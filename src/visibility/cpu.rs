@@ -19,9 +19,10 @@ use super::{
 /// and runs of triangles whose cells are all set already are passed over (module doc).
 /// With CesiumMan (4 672 triangles) walking in Sponza (`benches/sponza/job_character.json`,
 /// production, 320 × 180) the stage took 5.3–6.2 s a frame with every triangle tested,
-/// 2.9–3.5 s with the triangles facing away left out, and 1.5–1.8 s with the runs passed
-/// over as well; the example room's cube 0.26, 0.21 and 0.17–0.18 s over frames 1–8. The
-/// same EXRs; one stratum fewer flagged in five of the character's frames.
+/// 2.9–3.5 s with the triangles facing away left out, 1.5–1.8 s with runs of 32 passed
+/// over as well, and 1.1–1.2 s with runs of 8 ([`super::CLUSTER`]); the example room's
+/// cube 0.26, 0.21 and 0.17–0.18 s over frames 1–8. The same EXRs; one stratum fewer
+/// flagged in five of the character's frames.
 pub struct CpuVisibility;
 
 impl Visibility for CpuVisibility {

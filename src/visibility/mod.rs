@@ -157,8 +157,16 @@ pub struct DynamicSet {
 }
 
 /// Triangles a cluster of [`DynamicSet::clusters`] holds at most: consecutive ones of a
-/// prim, which meshes list near one another.
-pub const CLUSTER: usize = 32;
+/// prim, which meshes list near one another. A prim of at most [`CLUSTERED`] triangles is
+/// one cluster. On CesiumMan in Sponza (`benches/sponza/job_character.json`, frames 1–4,
+/// builds alternating) runs of 8 took the stage 1.09–1.34 s a frame, of 4 1.37–1.68 s, of
+/// 16 1.20–1.54 s and of 32 1.46–2.15 s; runs of 64, 4.2–4.4 s against 32's 3.0–3.9 s in
+/// a slower spell. Sponza's own 62-triangle box in runs of 8 took 0.115–0.125 s a frame
+/// against 0.105–0.113 s in runs of 32, and 0.104–0.118 s as one.
+pub const CLUSTER: usize = 8;
+
+/// Prims with more triangles than this are split into clusters of [`CLUSTER`].
+pub const CLUSTERED: usize = 64;
 
 /// A bounding sphere of `points`, padded so that rounding cannot shrink it.
 fn bound(points: impl Iterator<Item = Vec3>) -> Bound {
@@ -186,11 +194,16 @@ impl DynamicSet {
             set.prims.push(bound(tris.iter().flatten().copied()));
             set.closed.push(closes_up(&tris));
             let start = set.triangles.len();
+            let run = if tris.len() > CLUSTERED {
+                CLUSTER
+            } else {
+                tris.len().max(1)
+            };
             set.clusters.push(
-                tris.chunks(CLUSTER)
+                tris.chunks(run)
                     .enumerate()
                     .map(|(i, c)| {
-                        let first = start + i * CLUSTER;
+                        let first = start + i * run;
                         (bound(c.iter().flatten().copied()), first..first + c.len())
                     })
                     .collect(),
@@ -1008,7 +1021,7 @@ mod tests {
         }
     }
 
-    /// Finely meshed prims (720 triangles each, 23 clusters) seen from up to a few sizes
+    /// Finely meshed prims (720 triangles each, 90 clusters) seen from up to a few sizes
     /// away: the CPU passes over the clusters whose cells are set already, and its flags
     /// stay conservative and the same as those of every triangle tested one by one.
     #[test]
@@ -1016,7 +1029,7 @@ mod tests {
         let strata = [12u32, 36u32];
         let (g, records) = closed_scene_of(13, 4, [16, 24], 24);
         let set = DynamicSet::new(&g);
-        assert!(set.clusters.iter().all(|c| c.len() == 23));
+        assert!(set.clusters.iter().all(|c| c.len() == 720 / CLUSTER));
         let flags = CpuVisibility.flag(&records, strata, &set).unwrap();
         assert!(assert_conservative(&g, &records, strata, &flags) > 100);
         // Every triangle its own cluster, each of which adds something where it is tested.
