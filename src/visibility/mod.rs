@@ -663,6 +663,19 @@ pub fn adds_nothing(
     !adds
 }
 
+/// `x.acos()` for `x` in [-1, 1] or a little more, never less (within 2·10⁻⁴): Abramowitz
+/// and Stegun's 4.4.45, √(1 − |x|) times a cubic, off by at most 6.7·10⁻⁵, plus 10⁻⁴ for
+/// that and for rounding. [`cells_near`] widens a row's columns by it, which only adds
+/// columns its visitor tests (`acosf` took a tenth of `cover`'s samples on a character's
+/// triangles; CesiumMan in Sponza: the stage 1.02–1.16 s a frame against 1.11–1.37 s, the
+/// same flags).
+fn acos_above(x: f32) -> f32 {
+    let a = x.abs();
+    let r = (1.0 - a).max(0.0).sqrt()
+        * (((-0.018_729_3 * a + 0.074_261) * a - 0.212_114_4) * a + 1.570_728_8);
+    (if x < 0.0 { std::f32::consts::PI - r } else { r }) + 1e-4
+}
+
 /// Visits `(row, cell)` for the cells of `h` that a quarter's cap meeting `cull` may lie
 /// in, row by row like a rasteriser's bounding box (module doc): the rows whose best cell
 /// can reach the cap, and in each the columns whose azimuth can, with one column of margin
@@ -689,7 +702,7 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
             if q <= -1.0 {
                 (0, n - 1)
             } else {
-                let delta = q.min(1.0).acos();
+                let delta = acos_above(q.min(1.0));
                 (
                     ((phi_w - delta) / dphi - 0.5).floor() as i32 - 1,
                     ((phi_w + delta) / dphi - 0.5).ceil() as i32 + 1,
@@ -941,6 +954,16 @@ mod tests {
             if strata[0] * strata[1] >= 192 {
                 assert!(flagged < all / 2, "{flagged} of {all} flagged");
             }
+        }
+    }
+
+    /// `acos_above` lies above `acos` by at most 2·10⁻⁴ over [-1, 1].
+    #[test]
+    fn acos_above_bounds_acos_from_above() {
+        for i in 0..=20_000 {
+            let x = -1.0 + i as f32 / 10_000.0;
+            let d = acos_above(x) as f64 - (x as f64).acos();
+            assert!((0.0..2e-4).contains(&d), "acos({x}): {d}");
         }
     }
 
