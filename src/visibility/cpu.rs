@@ -60,11 +60,12 @@ impl Visibility for CpuVisibility {
                         if adds_nothing(&h, &f, *ball, CPU_SLACK, &bits) {
                             continue;
                         }
-                        for tri in &set.triangles[tris.clone()] {
+                        let faces = &set.faces[tris.clone()];
+                        for (tri, face) in set.triangles[tris.clone()].iter().zip(faces) {
                             if reach.as_ref().is_some_and(|r| bits.contains(r)) {
                                 break 'clusters;
                             }
-                            if facing_only && faces_away(x, tri) {
+                            if facing_only && faces_away(x, face) {
                                 continue;
                             }
                             cover(&h, &f, sphere, tri, CPU_SLACK, &mut bits);

@@ -151,6 +151,8 @@ pub struct DynamicSet {
     /// Per prim, whether its triangles close up ([`closes_up`]), so that a record outside
     /// its sphere need not test the ones facing away ([`faces_away`]).
     pub closed: Vec<bool>,
+    /// Per triangle, its plane for [`faces_away`].
+    pub faces: Vec<Face>,
     /// Per prim, its triangles in runs of at most [`CLUSTER`] (in `triangles`), each with a
     /// bounding sphere ([`adds_nothing`]).
     pub clusters: Vec<Vec<(Bound, std::ops::Range<usize>)>>,
@@ -193,6 +195,7 @@ impl DynamicSet {
         for tris in by_prim.into_values() {
             set.prims.push(bound(tris.iter().flatten().copied()));
             set.closed.push(closes_up(&tris));
+            set.faces.extend(tris.iter().map(Face::of));
             let start = set.triangles.len();
             let run = if tris.len() > CLUSTERED {
                 CLUSTER
@@ -245,18 +248,44 @@ pub fn closes_up(tris: &[[Vec3; 3]]) -> bool {
     !tris.is_empty() && edges.values().all(|&n| n == 0)
 }
 
-/// Whether triangle `tri` faces away from `x`: `x` lies behind its plane (the side its
+/// What [`faces_away`] reads of a triangle, in f64, made once a frame
+/// ([`DynamicSet::faces`]) rather than for every record.
+#[derive(Debug, Clone, Copy)]
+pub struct Face {
+    /// The first corner, and its largest coordinate's magnitude.
+    a: glam::DVec3,
+    a_max: f32,
+    /// The winding's normal (e₁ × e₂, not normalised) and its length.
+    n: glam::DVec3,
+    n_len: f64,
+    /// |e₁|·|e₂|, which bounds the normal's rounding.
+    edges: f64,
+}
+
+impl Face {
+    pub fn of(tri: &[Vec3; 3]) -> Face {
+        let [a, b, c] = tri.map(|p| p.as_dvec3());
+        let (e1, e2) = (b - a, c - a);
+        let n = e1.cross(e2);
+        Face {
+            a,
+            a_max: tri[0].abs().max_element(),
+            n,
+            n_len: n.length(),
+            edges: e1.length() * e2.length(),
+        }
+    }
+}
+
+/// Whether triangle `face` faces away from `x`: `x` lies behind its plane (the side its
 /// winding's normal does not point to) by more than rounding could move it, in f64, and
 /// by more than the offset a record's rays leave its surface with (`SurfacePoint::spawn`,
 /// about 10⁻⁶ of the coordinates; the margin is ten times that). A triangle seen edge-on
 /// does not face away.
-pub fn faces_away(x: Vec3, tri: &[Vec3; 3]) -> bool {
-    let [a, b, c] = tri.map(|p| p.as_dvec3());
-    let (e1, e2) = (b - a, c - a);
-    let n = e1.cross(e2);
-    let v = x.as_dvec3() - a;
-    let margin = 1e-5 * (x.abs().max_element() + tri[0].abs().max_element()) as f64;
-    v.dot(n) < -(margin * n.length() + 1e-9 * v.length() * e1.length() * e2.length())
+pub fn faces_away(x: Vec3, face: &Face) -> bool {
+    let v = x.as_dvec3() - face.a;
+    let margin = 1e-5 * (x.abs().max_element() + face.a_max) as f64;
+    v.dot(face.n) < -(margin * face.n_len + 1e-9 * v.length() * face.edges)
 }
 
 /// One bit per stratum, index `j·N + k` (θ row j, φ column k), as the gather lays them out.
@@ -997,13 +1026,13 @@ mod tests {
         pinched[3] = [v[1], v[1], v[3]];
         assert!(!closes_up(&pinched));
         assert!(!closes_up(&[]));
-        // Seen from outside, one face faces away, three face the point ... or not: a point
-        // beyond the face x + y + z = 1 sees that face only.
+        // A point beyond the face x + y + z = 1 sees that face only: the other three face
+        // away from it.
         let far = Vec3::splat(2.0);
-        let away: Vec<bool> = tet.iter().map(|t| faces_away(far, t)).collect();
+        let away: Vec<bool> = tet.iter().map(|t| faces_away(far, &Face::of(t))).collect();
         assert_eq!(away, [true, true, true, false]);
         // A point in a face's plane is not behind it.
-        assert!(!faces_away(Vec3::new(3.0, -2.0, 0.0), &tet[0]));
+        assert!(!faces_away(Vec3::new(3.0, -2.0, 0.0), &Face::of(&tet[0])));
     }
 
     /// Closed prims (concave, some wound inwards, some around records): the CPU leaves out
@@ -1028,7 +1057,7 @@ mod tests {
             assert!(inside > 0, "no record inside a prim's sphere");
             let skipped = records
                 .iter()
-                .flat_map(|&(x, _)| set.triangles.iter().map(move |t| faces_away(x, t)))
+                .flat_map(|&(x, _)| set.faces.iter().map(move |f| faces_away(x, f)))
                 .filter(|&a| a)
                 .count();
             assert!(skipped * 3 > set.triangles.len() * records.len());
