@@ -44,7 +44,13 @@
 //! can see a point of that sphere ([`adds_nothing`]): from far away a character's
 //! thousands of triangles fall into a few cells, which its first triangles set. The
 //! flags stay conservative; beyond the cells a run can be seen through, its triangles
-//! could add only cells their bounding caps reach and no ray of the run's meets.
+//! could add only cells their bounding caps reach and no ray of the run's meets. A prim of
+//! more than [`CLUSTERED`] triangles is taken along a Morton curve through its box, not in
+//! the order its mesh lists them, so that a run's triangles lie near one another, and its
+//! runs form a tree ([`DynamicSet::clusters`]: [`FAN_OUT`] nodes to a node, each with a
+//! sphere) that the CPU walks from the top, passing over a whole node in the same way: a
+//! character's far side and the parts its first triangles hid cost one test a node
+//! rather than one a run. The same argument keeps the flags conservative.
 //!
 //! Both implementations share the rule with a *slack* that loosens every comparison (in
 //! cosine units, so it must stay small against 1 − cos β of the narrowest quarter): the
@@ -77,6 +83,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geom::{Geometry, basis};
 pub use cpu::CpuVisibility;
+use obvhs::ploc::morton::morton_encode_u64;
 
 /// Why visibility detection could not run.
 #[derive(Debug, thiserror::Error)]
@@ -153,22 +160,42 @@ pub struct DynamicSet {
     pub closed: Vec<bool>,
     /// Per triangle, its plane for [`faces_away`].
     pub faces: Vec<Face>,
-    /// Per prim, its triangles in runs of at most [`CLUSTER`] (in `triangles`), each with a
-    /// bounding sphere ([`adds_nothing`]).
-    pub clusters: Vec<Vec<(Bound, std::ops::Range<usize>)>>,
+    /// Per prim, a tree of its triangles' runs, each node with a bounding sphere
+    /// ([`adds_nothing`]), by levels from the leaves up: level 0 holds runs of at most
+    /// [`CLUSTER`] triangles (ranges in `triangles`), each level above runs of at most
+    /// [`FAN_OUT`] nodes of the level below (ranges in it), up to a level of at most
+    /// [`FAN_OUT`] nodes.
+    pub clusters: Vec<Vec<Vec<Node>>>,
 }
 
+/// A node of [`DynamicSet::clusters`]: its bounding sphere and what it holds, triangles
+/// (level 0) or nodes of the level below.
+pub type Node = (Bound, std::ops::Range<usize>);
+
+/// Nodes of the level below that a node of [`DynamicSet::clusters`] above level 0 holds at
+/// most. On CesiumMan in Sponza (below, runs of 8) 2 to a node took the stage about as long
+/// as 4 (0.33–0.38 s a frame against 0.30–0.38 s, two rounds), where runs alone, along the
+/// same curve, took 0.61–0.88 s.
+pub const FAN_OUT: usize = 4;
+
 /// Triangles a cluster of [`DynamicSet::clusters`] holds at most: consecutive ones of a
-/// prim, which meshes list near one another. A prim of at most [`CLUSTERED`] triangles is
-/// one cluster. On CesiumMan in Sponza (`benches/sponza/job_character.json`, frames 1–4,
-/// builds alternating) runs of 8 took the stage 1.09–1.34 s a frame, of 4 1.37–1.68 s, of
-/// 16 1.20–1.54 s and of 32 1.46–2.15 s; runs of 64, 4.2–4.4 s against 32's 3.0–3.9 s in
-/// a slower spell. Sponza's own 62-triangle box in runs of 8 took 0.115–0.125 s a frame
-/// against 0.105–0.113 s in runs of 32, and 0.104–0.118 s as one.
+/// prim (along its Morton curve where it has more than [`CLUSTERED`]). A prim of at most
+/// [`CLUSTERED`] triangles is one cluster. On CesiumMan in Sponza
+/// (`benches/sponza/job_character.json`, frames 1–4, builds alternating), in the order its
+/// mesh lists them and without the tree above the runs, runs of 8 took the stage
+/// 1.09–1.34 s a frame, of 4 1.37–1.68 s, of 16 1.20–1.54 s and of 32 1.46–2.15 s; runs of
+/// 64, 4.2–4.4 s against 32's 3.0–3.9 s in a slower spell. Along the Morton curve, in a tree,
+/// runs of 4, 8 and 16 took 0.30–0.42, 0.30–0.38 and 0.34–0.41 s. Sponza's own
+/// 62-triangle box in runs of 8 took 0.115–0.125 s a frame against 0.105–0.113 s in runs
+/// of 32, and 0.104–0.118 s as one.
 pub const CLUSTER: usize = 8;
 
 /// Prims with more triangles than this are split into clusters of [`CLUSTER`].
 pub const CLUSTERED: usize = 64;
+
+/// Cells along each axis of the Morton curve that orders a clustered prim's triangles
+/// (obvhs's 21-bit codes).
+const MORTON_CELLS: u32 = 1 << 21;
 
 /// A bounding sphere of `points`, padded so that rounding cannot shrink it.
 fn bound(points: impl Iterator<Item = Vec3>) -> Bound {
@@ -192,8 +219,20 @@ impl DynamicSet {
                 .push([t.v0.into(), t.v1.into(), t.v2.into()]);
         }
         let mut set = DynamicSet::default();
-        for tris in by_prim.into_values() {
-            set.prims.push(bound(tris.iter().flatten().copied()));
+        for mut tris in by_prim.into_values() {
+            let prim = bound(tris.iter().flatten().copied());
+            if tris.len() > CLUSTERED {
+                // Along a Morton curve through the prim's box, so that each run and each
+                // node above it holds triangles near one another.
+                let lo = prim.centre - Vec3::splat(prim.radius);
+                let scale = MORTON_CELLS as f32 / (2.0 * prim.radius);
+                let cell = |v: f32| (v as u32).min(MORTON_CELLS - 1);
+                tris.sort_by_cached_key(|t| {
+                    let c = ((t[0] + t[1] + t[2]) / 3.0 - lo) * scale;
+                    morton_encode_u64(cell(c.x), cell(c.y), cell(c.z))
+                });
+            }
+            set.prims.push(prim);
             set.closed.push(closes_up(&tris));
             set.faces.extend(tris.iter().map(Face::of));
             let start = set.triangles.len();
@@ -202,15 +241,31 @@ impl DynamicSet {
             } else {
                 tris.len().max(1)
             };
-            set.clusters.push(
+            // Each node's triangles, `run` of them for each cluster it holds.
+            let mut levels = vec![
                 tris.chunks(run)
                     .enumerate()
                     .map(|(i, c)| {
                         let first = start + i * run;
                         (bound(c.iter().flatten().copied()), first..first + c.len())
                     })
-                    .collect(),
-            );
+                    .collect::<Vec<_>>(),
+            ];
+            let mut size = run;
+            while let Some(below) = levels.last().filter(|l| l.len() > FAN_OUT) {
+                size *= FAN_OUT;
+                let level = (0..below.len())
+                    .step_by(FAN_OUT)
+                    .enumerate()
+                    .map(|(i, first)| {
+                        let t = &tris[i * size..((i + 1) * size).min(tris.len())];
+                        let last = (first + FAN_OUT).min(below.len());
+                        (bound(t.iter().flatten().copied()), first..last)
+                    })
+                    .collect();
+                levels.push(level);
+            }
+            set.clusters.push(levels);
             set.triangles.extend(tris);
             set.ranges.push(start..set.triangles.len());
         }
@@ -669,11 +724,13 @@ pub fn adds_nothing(
     if !(sin < 0.5) {
         return false;
     }
-    let grown = sin.asin() + 1e-3;
+    // The ball's half-angle α grown by 10⁻³: cos(α + g) and sin(α + g) from cos α, sin α.
+    let (cos_g, sin_g) = (0.999_999_5_f32, 0.000_999_999_8_f32);
+    let cos = (1.0 - sin * sin).sqrt();
     let cap = Cap {
         axis: f.local(v / d),
-        cos: grown.cos(),
-        sin: grown.sin(),
+        cos: cos * cos_g - sin * sin_g,
+        sin: sin * cos_g + cos * sin_g,
     };
     let mut adds = false;
     cells_near(h, &cap, slack, |j, cell| {
@@ -705,6 +762,44 @@ fn acos_above(x: f32) -> f32 {
     (if x < 0.0 { std::f32::consts::PI - r } else { r }) + 1e-4
 }
 
+/// The most [`atan2_near`] lies from `atan2`, with room for rounding.
+const ATAN2_ERROR: f32 = 2e-5;
+
+/// `y.atan2(x)` within [`ATAN2_ERROR`] (0 where both are 0): Abramowitz and Stegun's
+/// 4.4.47, a polynomial off by at most 10⁻⁵ on [0, 1], of the tangent of the angle to the
+/// nearer axis. [`cells_near`] widens a row's columns by the error, which only adds
+/// columns its visitor tests; it replaces `atan2f`, which the stage called once per record
+/// and triangle or run.
+fn atan2_near(y: f32, x: f32) -> f32 {
+    let (ax, ay) = (x.abs(), y.abs());
+    let (lo, hi) = (ax.min(ay), ax.max(ay));
+    let t = if hi > 0.0 { lo / hi } else { 0.0 };
+    let t2 = t * t;
+    let mut a = t
+        * (0.999_866
+            + t2 * (-0.330_299_5 + t2 * (0.180_141 + t2 * (-0.085_133 + t2 * 0.020_835_1))));
+    if ay > ax {
+        a = std::f32::consts::FRAC_PI_2 - a;
+    }
+    if x < 0.0 {
+        a = std::f32::consts::PI - a;
+    }
+    if y < 0.0 { -a } else { a }
+}
+
+/// `x.floor() as i32` for `|x|` below 2³¹, without the call to `floorf` that `f32::floor`
+/// compiles to where SSE4.1 is not assumed.
+fn floor(x: f32) -> i32 {
+    let t = x as i32;
+    if (t as f32) > x { t - 1 } else { t }
+}
+
+/// `x.ceil() as i32` for `|x|` below 2³¹, as [`floor`].
+fn ceil(x: f32) -> i32 {
+    let t = x as i32;
+    if (t as f32) < x { t + 1 } else { t }
+}
+
 /// Visits `(row, cell)` for the cells of `h` that a quarter's cap meeting `cull` may lie
 /// in, row by row like a rasteriser's bounding box (module doc): the rows whose best cell
 /// can reach the cap, and in each the columns whose azimuth can, with one column of margin
@@ -714,7 +809,7 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
     let n = h.n as i32;
     let dphi = 2.0 * std::f32::consts::PI / h.n as f32;
     let rho = (cull.axis.x * cull.axis.x + cull.axis.y * cull.axis.y).sqrt();
-    let phi_w = cull.axis.y.atan2(cull.axis.x);
+    let phi_w = atan2_near(cull.axis.y, cull.axis.x);
     for (j, row) in h.rows.iter().enumerate() {
         let k_min = cos_sum(cull.cos, cull.sin, row.cos_beta, row.sin_beta) - slack;
         let along = row.cos_theta * cull.axis.z;
@@ -731,10 +826,10 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
             if q <= -1.0 {
                 (0, n - 1)
             } else {
-                let delta = acos_above(q.min(1.0));
+                let delta = acos_above(q.min(1.0)) + ATAN2_ERROR;
                 (
-                    ((phi_w - delta) / dphi - 0.5).floor() as i32 - 1,
-                    ((phi_w + delta) / dphi - 0.5).ceil() as i32 + 1,
+                    floor((phi_w - delta) / dphi - 0.5) - 1,
+                    ceil((phi_w + delta) / dphi - 0.5) + 1,
                 )
             }
         };
@@ -743,9 +838,15 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
         } else {
             (k0, k1)
         };
-        for k in k0..=k1 {
-            if !visit(j, j * h.n as usize + k.rem_euclid(n) as usize) {
+        let first = j * h.n as usize;
+        let mut k = k0.rem_euclid(n) as usize;
+        for _ in k0..=k1 {
+            if !visit(j, first + k) {
                 return;
+            }
+            k += 1;
+            if k == h.n as usize {
+                k = 0;
             }
         }
     }
@@ -807,7 +908,7 @@ pub(crate) mod testing {
     }
 
     /// Adds a triangle of prim `prim` to `g`, facing up for shading.
-    fn push_triangle(g: &mut Geometry, [a, b, c]: [Vec3; 3], prim: u32) {
+    pub fn push_triangle(g: &mut Geometry, [a, b, c]: [Vec3; 3], prim: u32) {
         g.triangles.push(triangle(a, b, c));
         g.shading.push(TriangleShading {
             normals: [Vec3::Y; 3],
@@ -1081,7 +1182,7 @@ mod tests {
         let strata = [12u32, 36u32];
         let (g, records) = closed_scene_of(13, 4, [16, 24], 24);
         let set = DynamicSet::new(&g);
-        assert!(set.clusters.iter().all(|c| c.len() == 720 / CLUSTER));
+        assert!(set.clusters.iter().all(|c| c[0].len() == 720 / CLUSTER));
         let flags = CpuVisibility.flag(&records, strata, &set).unwrap();
         assert!(assert_conservative(&g, &records, strata, &flags) > 100);
         // Every triangle its own cluster, each of which adds something where it is tested.
@@ -1112,13 +1213,92 @@ mod tests {
                 let h = &h;
                 set.clusters
                     .iter()
-                    .flatten()
+                    .flat_map(|tree| &tree[0])
                     .map(move |(ball, _)| adds_nothing(h, &f, *ball, CPU_SLACK, bits))
             })
             .filter(|&a| a)
             .count();
-        let all = records.len() * set.clusters.iter().map(Vec::len).sum::<usize>();
+        let all = records.len() * set.clusters.iter().map(|t| t[0].len()).sum::<usize>();
         assert!(passed * 2 > all, "{passed} of {all} clusters add nothing");
+    }
+
+    /// A clustered prim's triangles, listed in a scrambled order, are taken along a Morton
+    /// curve: its runs stay narrow. Each level of its tree of runs covers the level below in
+    /// order, in nodes of at most [`CLUSTER`] triangles or [`FAN_OUT`] nodes, up to a level
+    /// of at most [`FAN_OUT`], and every node's sphere holds its triangles.
+    #[test]
+    fn cluster_trees_are_narrow_and_bound_their_triangles() {
+        let (g, _) = closed_scene_of(14, 3, [16, 24], 0);
+        let n = g.triangles.len();
+        let mut scrambled = Geometry::default();
+        for i in (0..n).map(|i| i * 7919 % n) {
+            let t = &g.triangles[i];
+            let tri = [t.v0, t.v1, t.v2].map(Vec3::from);
+            push_triangle(&mut scrambled, tri, g.shading[i].prim);
+        }
+        let set = DynamicSet::new(&scrambled);
+        assert_eq!(set.clusters.len(), 3);
+        for ((prim, range), tree) in set.prims.iter().zip(&set.ranges).zip(&set.clusters) {
+            let mut below = range.clone();
+            for (level, nodes) in tree.iter().enumerate() {
+                let most = if level == 0 { CLUSTER } else { FAN_OUT };
+                let mut next = below.start;
+                for (_, r) in nodes {
+                    assert!(r.start == next && !r.is_empty() && r.len() <= most);
+                    next = r.end;
+                }
+                assert_eq!(next, below.end, "level {level}");
+                below = 0..nodes.len();
+            }
+            assert!(tree.last().unwrap().len() <= FAN_OUT);
+            // Each node's triangles, down the tree.
+            let triangles = |level: usize, node: usize| {
+                let mut r = node..node + 1;
+                for l in (0..=level).rev() {
+                    r = tree[l][r.start].1.start..tree[l][r.end - 1].1.end;
+                }
+                r
+            };
+            for (level, nodes) in tree.iter().enumerate() {
+                for (node, (ball, _)) in nodes.iter().enumerate() {
+                    for v in set.triangles[triangles(level, node)].iter().flatten() {
+                        assert!(v.distance(ball.centre) <= ball.radius, "level {level}");
+                    }
+                }
+            }
+            let mean = tree[0].iter().map(|(b, _)| b.radius).sum::<f32>() / tree[0].len() as f32;
+            assert!(mean < 0.35 * prim.radius, "{mean} against {}", prim.radius);
+        }
+    }
+
+    /// `atan2_near` lies within [`ATAN2_ERROR`] of `atan2` all round, and `floor` and
+    /// `ceil` are `f32`'s.
+    #[test]
+    fn atan2_near_and_floor_match_the_library() {
+        for i in 0..=20_000 {
+            let a = i as f64 / 20_000.0 * std::f64::consts::TAU;
+            for r in [1e-30, 1e-3, 1.0, 1e20] {
+                let (y, x) = ((r * a.sin()) as f32, (r * a.cos()) as f32);
+                let d = atan2_near(y, x) as f64 - (y as f64).atan2(x as f64);
+                assert!(d.abs() <= ATAN2_ERROR as f64, "atan2({y}, {x}): {d}");
+            }
+        }
+        for (y, x) in [
+            (0.0, 0.0),
+            (0.0, -1.0),
+            (-0.0, 1.0),
+            (1.0, 0.0),
+            (-1.0, 0.0),
+        ] {
+            let d = atan2_near(y, x) as f64 - (y as f64).atan2(x as f64);
+            assert!(d.abs() <= ATAN2_ERROR as f64, "atan2({y}, {x}): {d}");
+        }
+        for i in -4000..=4000 {
+            for x in [i as f32 / 64.0, i as f32 / 7.0, i as f32 * 1e5] {
+                assert_eq!(floor(x), x.floor() as i32, "{x}");
+                assert_eq!(ceil(x), x.ceil() as i32, "{x}");
+            }
+        }
     }
 
     /// A record beside a small triangle: only the strata around its direction are flagged,
