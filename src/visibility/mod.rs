@@ -241,7 +241,6 @@ impl DynamicSet {
             } else {
                 tris.len().max(1)
             };
-            // Each node's triangles, `run` of them for each cluster it holds.
             let mut levels = vec![
                 tris.chunks(run)
                     .enumerate()
@@ -251,6 +250,7 @@ impl DynamicSet {
                     })
                     .collect::<Vec<_>>(),
             ];
+            // Triangles a node of the level being made holds (`run` for each cluster).
             let mut size = run;
             while let Some(below) = levels.last().filter(|l| l.len() > FAN_OUT) {
                 size *= FAN_OUT;
