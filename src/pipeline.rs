@@ -165,6 +165,7 @@ pub fn render_frame_with(
             t.cache_interpolation = gs.cache_interpolation;
             t.depth_maps = gs.depth_maps;
             t.direct_lighting = gs.direct_lighting;
+            t.camera_rays = gs.camera_rays;
             let c = &mut stats.counts;
             c.photons = gs.photons;
             c.caches = gs.caches;

@@ -7,10 +7,11 @@ use serde::{Deserialize, Serialize};
 
 /// Per-stage seconds of the frame's wall time (`schemas/stats.schema.json`). Stages that
 /// run one after another are wall-clock spans; the parallel shading pass of the cached
-/// methods is split among `direct_lighting`, `cache_interpolation`, `final_gathering` and
-/// `irradiance_estimation` in proportion to the thread seconds its workers spent at each
-/// (per row, summed over threads), so the rows are seconds per frame that add up to about
-/// `total` (the rest: the static BVH, output, and what little lies between the spans).
+/// methods is split among `direct_lighting`, `cache_interpolation`, `final_gathering`,
+/// `irradiance_estimation` and `camera_rays` in proportion to the thread seconds its
+/// workers spent at each (per row, summed over threads), so the rows are seconds per frame
+/// that add up to about `total` (the rest: the static BVH, output, and what little lies
+/// between the spans).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Timings {
     /// Evaluating animation, skinning and morphing of dynamic prims.
@@ -62,6 +63,11 @@ pub struct Timings {
     pub depth_maps: f64,
     /// Direct light at camera hits (for `path-trace`: the whole path tracing).
     pub direct_lighting: f64,
+    /// The cached methods' shading pass, besides the rows above: tracing the camera rays
+    /// (each pixel's centre and its samples) with their surface points, and the film's
+    /// bookkeeping. Zero for `path-trace`, whose `direct_lighting` holds them.
+    #[serde(default)]
+    pub camera_rays: f64,
     pub output: f64,
     pub total: f64,
 }

@@ -95,10 +95,11 @@ impl GatherEstimate<'_> {
 /// rays, estimates and attachment); the parallel shading pass by thread seconds accumulated
 /// per row at each work site, its wall time split among the rows in their proportion —
 /// direct light to `direct_lighting`, interpolation (with bucketing and glossy rays) to
-/// `cache_interpolation`, and the fallback for samples no record covers (a final gather on
+/// `cache_interpolation`, the fallback for samples no record covers (a final gather on
 /// the spot) to `final_gathering` (its rays) and `irradiance_estimation` (their photon
-/// look-ups). So the rows add up to the frame's time, less scene evaluation, BVHs, output
-/// and the bookkeeping between phases.
+/// look-ups), and the rest of a pixel's work, its camera rays and the film's bookkeeping,
+/// to `camera_rays`. So the rows add up to the frame's time, less scene evaluation, BVHs,
+/// output and the bookkeeping between phases.
 #[derive(Debug, Clone, Default)]
 pub struct CachedStats {
     pub photon_tracing: f64,
@@ -119,6 +120,8 @@ pub struct CachedStats {
     /// Answering anchor bucketing's depth queries (§5.1), wherever visibility runs.
     pub depth_maps: f64,
     pub direct_lighting: f64,
+    /// The shading pass's camera rays and film bookkeeping ([`ShadeRow::t_camera`]).
+    pub camera_rays: f64,
     pub photons: u64,
     pub caches: u64,
     /// Spot records ([`crate::cache::Record::spot`]) among `caches`, and those made this
@@ -432,16 +435,18 @@ pub fn render_in_bands(
     st.uncached_rays = rows.iter().map(|r| r.uncached_rays).sum();
     st.rays_shot += st.uncached_rays;
     // The shading pass's wall time, split in proportion to the thread seconds measured at
-    // each work site (CachedStats): camera rays and film bookkeeping, measured nowhere,
-    // are spread in the same proportion.
+    // each work site (CachedStats), camera rays and the film's bookkeeping among them.
     let sum = |f: fn(&ShadeRow) -> f64| rows.iter().map(f).sum::<f64>();
-    // Direct light and interpolation were timed at a sample of the shaded samples.
+    // Direct light and interpolation were timed at a sample of the shaded samples, camera
+    // rays at a sample of the pixels.
     let sampled = sum(|r| r.shaded as f64) / sum(|r| r.timed as f64).max(1.0);
+    let pixels = sum(|r| r.pixels as f64) / sum(|r| r.pixels_timed as f64).max(1.0);
     let site = [
         sampled * sum(|r| r.t_direct),
         sampled * sum(|r| r.t_interp),
         sum(|r| r.t_gather),
         sum(|r| r.t_estimate),
+        pixels * sum(|r| r.t_camera),
     ];
     let threads: f64 = site.iter().sum();
     let share = |i: usize| {
@@ -457,6 +462,7 @@ pub fn render_in_bands(
     st.cache_interpolation = share(1) + planning;
     st.final_gathering += share(2);
     st.irradiance_estimation += share(3);
+    st.camera_rays = share(4);
     let counts = RenderCounts::sum(rows.iter().map(|r| &r.counts));
     st.gather_shadow_rays = pm.shadow_rays_cast();
     Ok((img, counts, st))
@@ -695,6 +701,16 @@ pub struct ShadeRow {
     t_interp: f64,
     t_gather: f64,
     t_estimate: f64,
+    /// The timed column's pixels' own work besides the sites above: their camera rays
+    /// (the pixel centre's and every sample's, with their surface points) and the film's
+    /// bookkeeping — each such pixel's thread seconds from its start to the next pixel's,
+    /// less the sites' seconds within it, over `pixels_timed` of the row's `pixels` (a
+    /// row's last pixel, with no next one, is left out).
+    t_camera: f64,
+    pixels: u64,
+    pixels_timed: u64,
+    /// The timed pixel under way: when it began, and the sites' seconds then.
+    pixel_clock: Option<(Instant, f64)>,
     timed: u64,
     shaded: u64,
     uncached: u64,
@@ -1017,6 +1033,18 @@ impl Shade for CachedShading<'_> {
     /// The pixel centre's surface: interpolation for the pixel's samples on that surface
     /// happens there, which does not move with the per-frame sample jitter.
     fn begin_pixel(&self, ctx: &FrameContext, row: &mut ShadeRow, x: u32, y: u32) -> CachedPixel {
+        // The timed pixel before this one ends here (ShadeRow::t_camera).
+        let sites = row.t_direct + row.t_interp + row.t_gather + row.t_estimate;
+        let now = row.pixel_clock.is_some() || x.is_multiple_of(TIMED_COLUMNS);
+        let now = now.then(Instant::now);
+        if let (Some((t0, sites0)), Some(now)) = (row.pixel_clock.take(), now) {
+            row.t_camera += ((now - t0).as_secs_f64() - (sites - sites0)).max(0.0);
+            row.pixels_timed += 1;
+        }
+        row.pixels += 1;
+        row.pixel_clock = now
+            .filter(|_| x.is_multiple_of(TIMED_COLUMNS))
+            .map(|t| (t, sites));
         let index = y * ctx.width + x;
         let plans = match self.pass {
             BucketPass::Shade(Some(band)) => band.of_pixel(index),

@@ -473,7 +473,8 @@ fn uncached_samples_and_stages() {
                 + t.cache_interpolation
                 + t.visibility
                 + t.depth_maps
-                + t.direct_lighting;
+                + t.direct_lighting
+                + t.camera_rays;
             eprintln!("  stages {rows:.4} s of {elapsed:.4} s: {t:?}");
             // Linking hits to anchors is a row of its own, taken out of the spans that time
             // irradiance estimation.
@@ -483,6 +484,8 @@ fn uncached_samples_and_stages() {
             assert!(t.integration > 0.0, "{method}: {t:?}");
             // Every frame traces its pixel centres to place records, and drops expired ones.
             assert!(t.placement > 0.0 && t.upkeep > 0.0, "{method}: {t:?}");
+            // Every frame traces camera rays.
+            assert!(t.camera_rays > 0.0, "{method}: {t:?}");
             assert!(
                 rows <= elapsed,
                 "{method} frame {frame}: stages {rows} s > the frame's {elapsed} s"
