@@ -81,6 +81,7 @@ declare -A TESTS=(
   [cluster-tree-node-short]="lib:visibility::tests"
   [cluster-walk-skips-child]="lib:visibility::tests"
   [clusters-unsorted]="lib:visibility::tests"
+  [camera-untimed]="gi::uncached_samples_count"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -97,7 +98,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   grid-last-lane-skipped placement-untimed upkeep-untimed group-photon-misplaced
   kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
   search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere
-  cluster-cap-halved cluster-tree-node-short cluster-walk-skips-child clusters-unsorted)
+  cluster-cap-halved cluster-tree-node-short cluster-walk-skips-child clusters-unsorted
+  camera-untimed)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
