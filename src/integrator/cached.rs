@@ -502,8 +502,8 @@ fn prepare_brute_force(
 /// in memory (a few kilobytes each).
 pub const BAND_PIXELS: u32 = 8192;
 
-/// The shading pass times direct light and interpolation in one pixel column of this many
-/// ([`ShadeRow`]).
+/// The shading pass times direct light, interpolation and the pixels' camera rays in one
+/// pixel column of this many ([`ShadeRow`]).
 const TIMED_COLUMNS: u32 = 8;
 
 /// Which pass of the shade phase runs (module doc).
