@@ -84,6 +84,7 @@ use serde::{Deserialize, Serialize};
 use crate::geom::{Geometry, basis};
 pub use cpu::CpuVisibility;
 use obvhs::ploc::morton::morton_encode_u64;
+use rayon::prelude::*;
 
 /// Why visibility detection could not run.
 #[derive(Debug, thiserror::Error)]
@@ -288,19 +289,26 @@ impl DynamicSet {
 pub fn closes_up(tris: &[[Vec3; 3]]) -> bool {
     // (+ 0.0 turns −0 into +0: the same point.)
     let key = |v: Vec3| v.to_array().map(|c| (c + 0.0).to_bits());
-    let mut edges: std::collections::HashMap<([u32; 3], [u32; 3]), i32> =
-        std::collections::HashMap::with_capacity(3 * tris.len());
+    // Each edge by its ends in order, +1 walked from the lesser end, −1 from the greater,
+    // summed over runs of equal ends once sorted (a million triangles: 0.17 s on two cores,
+    // where a hash map of the edges took 0.88 s and the whole set 1.12 s a frame).
+    let mut edges: Vec<([u32; 6], i32)> = Vec::with_capacity(3 * tris.len());
     for t in tris {
         for e in 0..3 {
             let (a, b) = (key(t[e]), key(t[(e + 1) % 3]));
-            match a.cmp(&b) {
-                std::cmp::Ordering::Less => *edges.entry((a, b)).or_default() += 1,
-                std::cmp::Ordering::Greater => *edges.entry((b, a)).or_default() -= 1,
+            let (lo, hi, walk) = match a.cmp(&b) {
+                std::cmp::Ordering::Less => (a, b, 1),
+                std::cmp::Ordering::Greater => (b, a, -1),
                 std::cmp::Ordering::Equal => return false,
-            }
+            };
+            edges.push(([lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]], walk));
         }
     }
-    !tris.is_empty() && edges.values().all(|&n| n == 0)
+    edges.par_sort_unstable_by_key(|e| e.0);
+    !tris.is_empty()
+        && edges
+            .chunk_by(|a, b| a.0 == b.0)
+            .all(|same| same.iter().map(|e| e.1).sum::<i32>() == 0)
 }
 
 /// What [`faces_away`] reads of a triangle, in f64, made once a frame
