@@ -65,7 +65,7 @@ pub struct Timings {
     pub direct_lighting: f64,
     /// The cached methods' shading pass, besides the rows above: tracing the camera rays
     /// (each pixel's centre and its samples) with their surface points, and the film's
-    /// bookkeeping. Zero for `path-trace`, whose `direct_lighting` holds them.
+    /// bookkeeping. Zero for `path-trace` and `direct`, whose `direct_lighting` holds them.
     #[serde(default)]
     pub camera_rays: f64,
     pub output: f64,

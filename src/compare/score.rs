@@ -65,7 +65,8 @@ pub struct Table1 {
     pub placement: f64,
     pub upkeep: f64,
     /// Everything else of a frame: `total` less the rows above (scene evaluation, BVHs,
-    /// depth maps, output, what little lies between the timed spans).
+    /// depth maps, the shading pass's camera rays (`camera_rays`), output, what little lies
+    /// between the timed spans).
     pub other: f64,
     pub total: f64,
 }

@@ -120,7 +120,7 @@ pub struct CachedStats {
     /// Answering anchor bucketing's depth queries (§5.1), wherever visibility runs.
     pub depth_maps: f64,
     pub direct_lighting: f64,
-    /// The shading pass's camera rays and film bookkeeping ([`ShadeRow::t_camera`]).
+    /// The shading pass's camera rays and film bookkeeping (`ShadeRow::t_camera`).
     pub camera_rays: f64,
     pub photons: u64,
     pub caches: u64,

@@ -715,9 +715,10 @@ pub fn cover(
 /// Whether `bits` already holds every cell through which `f` can see a point of `ball`
 /// (so that [`CpuVisibility`] passes over the triangles within it): the cells with a
 /// quarter whose cap (module doc: it holds the whole quarter) meets the ball's cap of
-/// directions, grown by 10⁻³ (far more than rounding moves either side). What [`cover`]
-/// would add for those triangles beyond them lies outside every direction that meets
-/// one, so the flags stay conservative. Only for balls seen narrower than 60°.
+/// directions, grown by about 10⁻³ (at least 9.4·10⁻⁴ in f32, far more than rounding
+/// moves either side). What [`cover`] would add for those triangles beyond them lies
+/// outside every direction that meets one, so the flags stay conservative. Only for balls
+/// seen narrower than 60°.
 pub fn adds_nothing(
     h: &Hemisphere,
     f: &RecordFrame,
@@ -732,7 +733,8 @@ pub fn adds_nothing(
     if !(sin < 0.5) {
         return false;
     }
-    // The ball's half-angle α grown by 10⁻³: cos(α + g) and sin(α + g) from cos α, sin α.
+    // The ball's half-angle α grown by g = 10⁻³: cos(α + g) and sin(α + g) from cos α and
+    // sin α (cos g rounds to cos 9.8·10⁻⁴ in f32).
     let (cos_g, sin_g) = (0.999_999_5_f32, 0.000_999_999_8_f32);
     let cos = (1.0 - sin * sin).sqrt();
     let cap = Cap {
