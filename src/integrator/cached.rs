@@ -1034,17 +1034,17 @@ impl Shade for CachedShading<'_> {
     /// happens there, which does not move with the per-frame sample jitter.
     fn begin_pixel(&self, ctx: &FrameContext, row: &mut ShadeRow, x: u32, y: u32) -> CachedPixel {
         // The timed pixel before this one ends here (ShadeRow::t_camera).
-        let sites = row.t_direct + row.t_interp + row.t_gather + row.t_estimate;
-        let now = row.pixel_clock.is_some() || x.is_multiple_of(TIMED_COLUMNS);
-        let now = now.then(Instant::now);
-        if let (Some((t0, sites0)), Some(now)) = (row.pixel_clock.take(), now) {
-            row.t_camera += ((now - t0).as_secs_f64() - (sites - sites0)).max(0.0);
-            row.pixels_timed += 1;
+        let timed = x.is_multiple_of(TIMED_COLUMNS);
+        if timed || row.pixel_clock.is_some() {
+            let now = Instant::now();
+            let sites = row.t_direct + row.t_interp + row.t_gather + row.t_estimate;
+            if let Some((t0, sites0)) = row.pixel_clock.take() {
+                row.t_camera += ((now - t0).as_secs_f64() - (sites - sites0)).max(0.0);
+                row.pixels_timed += 1;
+            }
+            row.pixel_clock = timed.then_some((now, sites));
         }
         row.pixels += 1;
-        row.pixel_clock = now
-            .filter(|_| x.is_multiple_of(TIMED_COLUMNS))
-            .map(|t| (t, sites));
         let index = y * ctx.width + x;
         let plans = match self.pass {
             BucketPass::Shade(Some(band)) => band.of_pixel(index),
