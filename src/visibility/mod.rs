@@ -3,8 +3,9 @@
 //! on the GPU and maps the map's pixels to strata; here the "map" is the stratum grid itself
 //! and coverage is decided per (record, triangle) by one conservative rule, [`cover`], that
 //! both implementations of [`Visibility`] run: [`CpuVisibility`] in Rust and
-//! [`gpu::GpuVisibility`] in WGSL (`shaders/visibility.wgsl`, which mirrors [`cover`]
-//! line by line).
+//! [`gpu::GpuVisibility`] in WGSL (`shaders/visibility.wgsl`, which mirrors [`cover`]'s
+//! tests line by line, one quarter of a cell at a time where the CPU tests a cell's four
+//! in SIMD lanes with the same arithmetic).
 //!
 //! The rule. From the record at x, a triangle's vertices project to unit vectors u₀, u₁, u₂;
 //! the projected triangle is the spherical triangle they span (its edges are minor arcs).
@@ -77,7 +78,7 @@ pub mod depth;
 pub mod depth_gpu;
 pub mod gpu;
 
-use glam::Vec3;
+use glam::{BVec4A, Vec3, Vec4};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -429,6 +430,36 @@ pub struct Hemisphere {
     pub half_rows: Vec<Row>,
     /// Centre direction of quarter `4(j·N + k) + 2r + q` (θ half r, φ half q), local.
     pub quarters: Vec<Vec3>,
+    /// The same four quarters of each cell side by side in SIMD lanes ([`QuarterLanes`]),
+    /// for the CPU's tests.
+    quarter_lanes: Vec<QuarterLanes>,
+    /// Per row: cos β and sin β of the half-row of each of its cells' quarters, in their
+    /// lanes (its first half-row's twice, then its second's).
+    half_row_lanes: Vec<[Vec4; 2]>,
+    /// The rows four at a time in SIMD lanes ([`RowLanes`]), for [`cells_near`].
+    row_lanes: Vec<RowLanes>,
+}
+
+/// Four rows' [`Row`] values side by side (cos θ, sin θ, cos β, sin β), the last group
+/// padded with copies of the last row: [`cells_near`] tests four rows at once, each lane
+/// with the arithmetic of the one-row test, so it skips the same rows.
+#[derive(Debug, Clone, Copy)]
+struct RowLanes([Vec4; 4]);
+
+/// The centres of a cell's four quarters in SIMD lanes: x, y and z, each in the order of
+/// [`Hemisphere::quarters`]. [`cover`] and [`adds_nothing`] test the four at once, each
+/// lane with the arithmetic the one-quarter test uses (the same products and sums in the
+/// same order, so the same bits); the scalar test stopped at the first quarter that
+/// passed.
+#[derive(Debug, Clone, Copy)]
+struct QuarterLanes([Vec4; 3]);
+
+impl QuarterLanes {
+    /// Each quarter's centre dotted with `v`, as `Vec3::dot` sums it.
+    #[inline(always)]
+    fn dot(&self, v: Vec3) -> Vec4 {
+        self.0[0] * Vec4::splat(v.x) + self.0[1] * Vec4::splat(v.y) + self.0[2] * Vec4::splat(v.z)
+    }
 }
 
 fn row(theta: f32, beta: f32) -> Row {
@@ -457,6 +488,9 @@ impl Hemisphere {
             rows: Vec::new(),
             half_rows: Vec::new(),
             quarters: Vec::new(),
+            quarter_lanes: Vec::new(),
+            half_row_lanes: Vec::new(),
+            row_lanes: Vec::new(),
         };
         for j in 0..m {
             let (t0, t1) = theta_limits(j, m);
@@ -477,7 +511,34 @@ impl Hemisphere {
                     }
                 }
             }
+            let [r0, r1] = [
+                &h.half_rows[2 * j as usize],
+                &h.half_rows[2 * j as usize + 1],
+            ];
+            h.half_row_lanes.push([
+                Vec4::new(r0.cos_beta, r0.cos_beta, r1.cos_beta, r1.cos_beta),
+                Vec4::new(r0.sin_beta, r0.sin_beta, r1.sin_beta, r1.sin_beta),
+            ]);
         }
+        h.row_lanes = (0..h.rows.len().div_ceil(4))
+            .map(|g| {
+                let row = |i: usize| h.rows[(4 * g + i).min(h.rows.len() - 1)];
+                let lanes = [0, 1, 2, 3].map(row);
+                RowLanes([
+                    Vec4::from_array(lanes.map(|r| r.cos_theta)),
+                    Vec4::from_array(lanes.map(|r| r.sin_theta)),
+                    Vec4::from_array(lanes.map(|r| r.cos_beta)),
+                    Vec4::from_array(lanes.map(|r| r.sin_beta)),
+                ])
+            })
+            .collect();
+        h.quarter_lanes = h
+            .quarters
+            .chunks_exact(4)
+            .map(|q| {
+                QuarterLanes([0, 1, 2].map(|a| Vec4::from_array([0, 1, 2, 3].map(|i| q[i][a]))))
+            })
+            .collect();
         h
     }
 
@@ -531,6 +592,33 @@ fn cos_sum(ca: f32, sa: f32, cb: f32, sb: f32) -> f32 {
 /// Whether a cell centre `c` of `row` lies within the cap grown by the row's β.
 fn overlaps(cap: &Cap, row: &Row, c: Vec3, slack: f32) -> bool {
     c.dot(cap.axis) >= cos_sum(cap.cos, cap.sin, row.cos_beta, row.sin_beta) - slack
+}
+
+/// [`overlaps`] for the four quarters of a cell, in their lanes: the cap, and the
+/// thresholds [`RowCap::of`] found for the cell's row.
+#[derive(Debug, Clone, Copy)]
+struct RowCap {
+    axis: Vec3,
+    at_least: Vec4,
+}
+
+impl RowCap {
+    /// `cap` in row `j`: the threshold of [`overlaps`] for each quarter's half-row.
+    #[inline(always)]
+    fn of(cap: &Cap, h: &Hemisphere, j: usize, slack: f32) -> RowCap {
+        let [a, b] = [&h.half_rows[2 * j], &h.half_rows[2 * j + 1]]
+            .map(|row| cos_sum(cap.cos, cap.sin, row.cos_beta, row.sin_beta) - slack);
+        RowCap {
+            axis: cap.axis,
+            at_least: Vec4::new(a, a, b, b),
+        }
+    }
+
+    /// The quarters of `q` that [`overlaps`] passes.
+    #[inline(always)]
+    fn overlaps(&self, q: &QuarterLanes) -> BVec4A {
+        q.dot(self.axis).cmpge(self.at_least)
+    }
 }
 
 /// What a prim's bounding sphere looks like from a record ([`sphere_cap`]).
@@ -623,7 +711,10 @@ impl SphericalTriangle {
 
     /// Whether the cap of `row`'s β around cell centre `c` meets the spherical triangle: `c`
     /// inside it, a vertex within β, or an edge within β (the distance to a minor arc is to
-    /// its great circle inside the arc's lune, else to an end).
+    /// its great circle inside the arc's lune, else to an end). The CPU runs
+    /// [`SphericalTriangle::near4`], four quarters at once; this one quarter at a time, as
+    /// the shader does, is the tests' reference for it.
+    #[cfg(test)]
     fn near(&self, row: &Row, c: Vec3, slack: f32) -> bool {
         if self.u.iter().any(|&u| c.dot(u) >= row.cos_beta - slack) {
             return true;
@@ -645,16 +736,121 @@ impl SphericalTriangle {
                 && c.dot(self.normal[e]).abs() <= row.sin_beta + slack
         })
     }
+
+    /// Whether `SphericalTriangle::near` (the tests' one-quarter reference) holds for one
+    /// of the `active` quarters of a cell of row `j`: the same tests in the quarters' lanes,
+    /// in stages, each stage skipped once one passes.
+    #[inline(always)]
+    fn near4(
+        &self,
+        h: &Hemisphere,
+        j: usize,
+        q: &QuarterLanes,
+        slack: f32,
+        active: BVec4A,
+    ) -> bool {
+        let [cos_beta, sin_beta] = h.half_row_lanes[j];
+        let reach = cos_beta - Vec4::splat(slack);
+        let vertex = self
+            .u
+            .iter()
+            .fold(BVec4A::splat(false), |m, &u| m | q.dot(u).cmpge(reach));
+        if (vertex & active).any() {
+            return true;
+        }
+        let out = Vec4::splat(-slack);
+        if self.inside_sign != 0.0 {
+            let sign = Vec4::splat(self.inside_sign);
+            let inside = self
+                .normal
+                .iter()
+                .fold(active, |m, &n| m & (sign * q.dot(n)).cmpge(out));
+            if inside.any() {
+                return true;
+            }
+        }
+        if (cos_beta.cmple(Vec4::ZERO) & active).any() {
+            return true;
+        }
+        let width = sin_beta + Vec4::splat(slack);
+        (0..3).any(|e| {
+            let [ta, tb] = self.tangents[e];
+            (active
+                & q.dot(ta).cmpge(out)
+                & q.dot(tb).cmpge(out)
+                & q.dot(self.normal[e]).abs().cmple(width))
+            .any()
+        })
+    }
 }
 
 /// A prim's sphere cap, from [`sphere_cap`].
 #[derive(Debug, Clone, Copy)]
 pub struct SphereCap(Cap);
 
+/// What [`cover`] tests a triangle's cells against (module doc).
+#[allow(clippy::large_enum_variant)] // one at a time, made and read where it is needed
+enum Tests {
+    /// Wholly below the tangent plane: no direction of the hemisphere reaches it.
+    Nothing,
+    /// Neither cap bounds the triangle: every cell may see it.
+    Everything,
+    /// The cells a quarter of which passes all three tests that are there, among those
+    /// [`cells_near`] enumerates around `cull`.
+    Cells {
+        cull: Cap,
+        tri_cap: Option<Cap>,
+        exact: Option<SphericalTriangle>,
+        sphere: Option<Cap>,
+    },
+}
+
+impl Tests {
+    /// The tests of triangle `tri` seen from `f`, its prim's cap `sphere`.
+    #[inline(always)]
+    fn of(f: &RecordFrame, sphere: Option<SphereCap>, tri: &[Vec3; 3], slack: f32) -> Tests {
+        let sphere = sphere.map(|s| s.0);
+        let rel = tri.map(|p| p - f.x);
+        let len = rel.map(Vec3::length);
+        if (0..3).all(|i| rel[i].dot(f.n) < -slack * len[i]) {
+            return Tests::Nothing;
+        }
+        let mut tri_cap = None;
+        let mut exact = None;
+        if len.iter().all(|&l| l > 0.0) {
+            let u = [rel[0] / len[0], rel[1] / len[1], rel[2] / len[2]];
+            let w = u[0] + u[1] + u[2];
+            let wl = w.length();
+            if wl > 0.0 {
+                let a = w / wl;
+                let cos = a.dot(u[0]).min(a.dot(u[1])).min(a.dot(u[2]));
+                if cos > MIN_CAP_COS + slack {
+                    tri_cap = Some(Cap {
+                        axis: f.local(a),
+                        cos,
+                        sin: (1.0 - cos * cos).max(0.0).sqrt(),
+                    });
+                    exact = SphericalTriangle::new(u.map(|v| f.local(v)), slack);
+                }
+            }
+        }
+        match tri_cap.or(sphere) {
+            None => Tests::Everything,
+            Some(cull) => Tests::Cells {
+                cull,
+                tri_cap,
+                exact,
+                sphere,
+            },
+        }
+    }
+}
+
 /// Sets the bit of every cell of `h` that triangle `tri` may cover from `f` (module doc),
 /// given its prim's cap from [`sphere_cap`]. A cell already set (by an earlier triangle of
 /// the record) is not tested again: the bits are the union over the triangles either way,
 /// and a closed mesh's triangles overlap in projection, its far side behind its near side.
+/// A cell's four quarters are tested at once, in SIMD lanes.
 pub fn cover(
     h: &Hemisphere,
     f: &RecordFrame,
@@ -663,53 +859,89 @@ pub fn cover(
     slack: f32,
     bits: &mut StrataBits,
 ) {
-    let sphere = sphere.map(|s| s.0);
-    let rel = tri.map(|p| p - f.x);
-    let len = rel.map(Vec3::length);
-    // Wholly below the tangent plane: no direction of the hemisphere reaches it.
-    if (0..3).all(|i| rel[i].dot(f.n) < -slack * len[i]) {
-        return;
-    }
-    let mut tri_cap = None;
-    let mut exact = None;
-    if len.iter().all(|&l| l > 0.0) {
-        let u = [rel[0] / len[0], rel[1] / len[1], rel[2] / len[2]];
-        let w = u[0] + u[1] + u[2];
-        let wl = w.length();
-        if wl > 0.0 {
-            let a = w / wl;
-            let cos = a.dot(u[0]).min(a.dot(u[1])).min(a.dot(u[2]));
-            if cos > MIN_CAP_COS + slack {
-                tri_cap = Some(Cap {
-                    axis: f.local(a),
-                    cos,
-                    sin: (1.0 - cos * cos).max(0.0).sqrt(),
-                });
-                exact = SphericalTriangle::new(u.map(|v| f.local(v)), slack);
-            }
+    let (cull, tri_cap, exact, sphere) = match Tests::of(f, sphere, tri, slack) {
+        Tests::Nothing => return,
+        Tests::Everything => {
+            (0..h.len()).for_each(|c| bits.set(c));
+            return;
         }
-    }
-    let Some(cull) = tri_cap.or(sphere) else {
-        // Neither cap bounds the triangle: every cell may see it.
-        (0..h.len()).for_each(|c| bits.set(c));
-        return;
+        Tests::Cells {
+            cull,
+            tri_cap,
+            exact,
+            sphere,
+        } => (cull, tri_cap, exact, sphere),
     };
+    // The caps' thresholds in the row being visited (cells come row by row).
+    let mut row = usize::MAX;
+    let (mut tri_row, mut sphere_row) = (None, None);
     cells_near(h, &cull, slack, |j, cell| {
         if bits.get(cell) {
             return true;
         }
-        let hit = (0..4).any(|i| {
+        if j != row {
+            row = j;
+            tri_row = tri_cap.map(|c| RowCap::of(&c, h, j, slack));
+            sphere_row = sphere.map(|c| RowCap::of(&c, h, j, slack));
+        }
+        // The quarters that pass every test (a cap that is not there passes them all).
+        let q = &h.quarter_lanes[cell];
+        let mut pass = BVec4A::splat(true);
+        if let Some(cap) = &tri_row {
+            pass &= cap.overlaps(q);
+            if !pass.any() {
+                return true;
+            }
+        }
+        if let Some(cap) = &sphere_row {
+            pass &= cap.overlaps(q);
+            if !pass.any() {
+                return true;
+            }
+        }
+        if exact.as_ref().is_none_or(|t| t.near4(h, j, q, slack, pass)) {
+            bits.set(cell);
+        }
+        true
+    });
+}
+
+/// [`cover`] as the GPU runs it: every cell of `h`, one quarter at a time, each test in
+/// scalar arithmetic. [`cover`] must set the same bits.
+#[cfg(test)]
+fn cover_every_cell(
+    h: &Hemisphere,
+    f: &RecordFrame,
+    sphere: Option<SphereCap>,
+    tri: &[Vec3; 3],
+    slack: f32,
+    bits: &mut StrataBits,
+) {
+    let (tri_cap, exact, sphere) = match Tests::of(f, sphere, tri, slack) {
+        Tests::Nothing => return,
+        Tests::Everything => {
+            (0..h.len()).for_each(|c| bits.set(c));
+            return;
+        }
+        Tests::Cells {
+            tri_cap,
+            exact,
+            sphere,
+            ..
+        } => (tri_cap, exact, sphere),
+    };
+    for cell in 0..h.len() {
+        let j = cell / h.n as usize;
+        if (0..4).any(|i| {
             let c = h.quarters[4 * cell + i];
             let half = &h.half_rows[2 * j + i / 2];
             tri_cap.is_none_or(|cap| overlaps(&cap, half, c, slack))
                 && exact.as_ref().is_none_or(|t| t.near(half, c, slack))
                 && sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
-        });
-        if hit {
+        }) {
             bits.set(cell);
         }
-        true
-    });
+    }
 }
 
 /// Whether `bits` already holds every cell through which `f` can see a point of `ball`
@@ -726,37 +958,67 @@ pub fn adds_nothing(
     slack: f32,
     bits: &StrataBits,
 ) -> bool {
+    let Some(cap) = ball_cap(f, ball) else {
+        return false;
+    };
+    let mut adds = false;
+    // The cap's thresholds in the row being visited.
+    let mut row: Option<(usize, RowCap)> = None;
+    cells_near(h, &cap, slack, |j, cell| {
+        if !bits.get(cell) {
+            let at = match row {
+                Some((r, at)) if r == j => at,
+                _ => row.insert((j, RowCap::of(&cap, h, j, slack))).1,
+            };
+            adds = at.overlaps(&h.quarter_lanes[cell]).any();
+        }
+        !adds
+    });
+    !adds
+}
+
+/// The cap of directions from `f` to `ball`, grown as [`adds_nothing`] grows it; `None`
+/// where the ball is seen 60° wide or more.
+#[inline(always)]
+fn ball_cap(f: &RecordFrame, ball: Bound) -> Option<Cap> {
     let v = ball.centre - f.x;
     let d = v.length();
     let sin = ball.radius / d;
-    // (Also false where the record lies in the ball, or d is zero or not finite.)
+    // (Also `None` where the record lies in the ball, or d is zero or not finite.)
     if !(sin < 0.5) {
-        return false;
+        return None;
     }
     // The ball's half-angle α grown by g = 10⁻³: cos(α + g) and sin(α + g) from cos α and
     // sin α (cos g rounds to cos 9.8·10⁻⁴ in f32).
     let (cos_g, sin_g) = (0.999_999_5_f32, 0.000_999_999_8_f32);
     let cos = (1.0 - sin * sin).sqrt();
-    let cap = Cap {
+    Some(Cap {
         axis: f.local(v / d),
         cos: cos * cos_g - sin * sin_g,
         sin: sin * cos_g + cos * sin_g,
+    })
+}
+
+/// [`adds_nothing`] over every cell of `h`, one quarter at a time in scalar arithmetic.
+#[cfg(test)]
+fn adds_nothing_every_cell(
+    h: &Hemisphere,
+    f: &RecordFrame,
+    ball: Bound,
+    slack: f32,
+    bits: &StrataBits,
+) -> bool {
+    let Some(cap) = ball_cap(f, ball) else {
+        return false;
     };
-    let mut adds = false;
-    cells_near(h, &cap, slack, |j, cell| {
-        if !bits.get(cell) {
-            adds = (0..4).any(|i| {
-                overlaps(
-                    &cap,
-                    &h.half_rows[2 * j + i / 2],
-                    h.quarters[4 * cell + i],
-                    slack,
-                )
-            });
-        }
-        !adds
-    });
-    !adds
+    (0..h.len()).all(|cell| {
+        let j = cell / h.n as usize;
+        bits.get(cell)
+            || !(0..4).any(|i| {
+                let half = &h.half_rows[2 * j + i / 2];
+                overlaps(&cap, half, h.quarters[4 * cell + i], slack)
+            })
+    })
 }
 
 /// `x.acos()` for `x` in [-1, 1] or a little more, never less (within 2·10⁻⁴): Abramowitz
@@ -820,14 +1082,26 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
     let dphi = 2.0 * std::f32::consts::PI / h.n as f32;
     let rho = (cull.axis.x * cull.axis.x + cull.axis.y * cull.axis.y).sqrt();
     let phi_w = atan2_near(cull.axis.y, cull.axis.x);
-    for (j, row) in h.rows.iter().enumerate() {
-        let k_min = cos_sum(cull.cos, cull.sin, row.cos_beta, row.sin_beta) - slack;
-        let along = row.cos_theta * cull.axis.z;
-        let across = row.sin_theta * rho;
-        // The row's best cell cannot reach the cap (with margin beyond the cell test's).
-        if along + across < k_min - 1e-4 {
-            continue;
-        }
+    // Four rows at a time: the rows whose best cell can reach the cap (with margin beyond
+    // the cell test's), each with its threshold and the two parts of its best cosine.
+    let rows = h.row_lanes.iter().enumerate().flat_map(|(g, lanes)| {
+        let [cos_theta, sin_theta, cos_beta, sin_beta] = lanes.0;
+        let (ca, sa) = (Vec4::splat(cull.cos), Vec4::splat(cull.sin));
+        // `cos_sum` in lanes.
+        let k_min = Vec4::select(
+            (sa * cos_beta + ca * sin_beta).cmplt(Vec4::ZERO),
+            Vec4::splat(-1.0),
+            ca * cos_beta - sa * sin_beta,
+        ) - Vec4::splat(slack);
+        let along = cos_theta * Vec4::splat(cull.axis.z);
+        let across = sin_theta * Vec4::splat(rho);
+        let skip = (along + across).cmplt(k_min - Vec4::splat(1e-4)).bitmask();
+        let (k_min, along, across) = (k_min.to_array(), along.to_array(), across.to_array());
+        (0..4)
+            .filter(move |&i| skip & (1 << i) == 0 && 4 * g + i < h.rows.len())
+            .map(move |i| (4 * g + i, k_min[i], along[i], across[i]))
+    });
+    for (j, k_min, along, across) in rows {
         // Azimuths within ±delta of the cap's axis can pass; one column of margin.
         let (k0, k1) = if across <= 1e-6 {
             (0, n - 1)
@@ -1095,6 +1369,62 @@ mod tests {
                 assert!(flagged < all / 2, "{flagged} of {all} flagged");
             }
         }
+    }
+
+    /// [`cover`] and [`adds_nothing`], which enumerate cells around a cap and test a
+    /// cell's four quarters in SIMD lanes, decide as the scalar tests of every cell and
+    /// quarter do, bit for bit: on random and closed prims at both presets' strata, from
+    /// records beside them and inside their spheres, with partly set bits.
+    #[test]
+    fn quarter_lanes_decide_as_the_scalar_tests() {
+        let scenes = [
+            random_scene(21, 4, 8, 16),
+            closed_scene(22, 4, 16),
+            closed_scene_of(23, 3, [16, 24], 8),
+        ];
+        let (mut cells, mut passed) = (0, 0);
+        for (g, records) in &scenes {
+            let set = DynamicSet::new(g);
+            for strata in [[12u32, 36u32], [30, 60], [4, 8]] {
+                let h = Hemisphere::new(strata);
+                for &(x, n) in records {
+                    let f = RecordFrame::new(x, n);
+                    let (mut bits, mut want) = (StrataBits::new(h.len()), StrataBits::new(h.len()));
+                    for (prim, range) in set.prims.iter().zip(&set.ranges) {
+                        let Some(sphere) = sphere_cap(&f, *prim, CPU_SLACK).visible() else {
+                            continue;
+                        };
+                        for tri in &set.triangles[range.clone()] {
+                            cover(&h, &f, sphere, tri, CPU_SLACK, &mut bits);
+                            cover_every_cell(&h, &f, sphere, tri, CPU_SLACK, &mut want);
+                            assert_eq!(bits, want, "{strata:?}, record at {x}");
+                        }
+                    }
+                    cells += bits.count();
+                    // Every run's ball against these bits, and against the bits of the
+                    // prims' first half of the triangles only.
+                    let mut half = StrataBits::new(h.len());
+                    for (prim, range) in set.prims.iter().zip(&set.ranges) {
+                        if let Some(sphere) = sphere_cap(&f, *prim, CPU_SLACK).visible() {
+                            for tri in &set.triangles[range.start..range.start + range.len() / 2] {
+                                cover(&h, &f, sphere, tri, CPU_SLACK, &mut half);
+                            }
+                        }
+                    }
+                    for (ball, _) in set.clusters.iter().flat_map(|t| t.iter().flatten()) {
+                        for b in [&bits, &half] {
+                            let got = adds_nothing(&h, &f, *ball, CPU_SLACK, b);
+                            assert_eq!(got, adds_nothing_every_cell(&h, &f, *ball, CPU_SLACK, b));
+                            passed += got as usize;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            cells > 1000 && passed > 100,
+            "{cells} cells, {passed} balls pass"
+        );
     }
 
     /// `acos_above` lies above `acos` by at most 2·10⁻⁴ over [-1, 1].
