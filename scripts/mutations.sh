@@ -82,6 +82,9 @@ declare -A TESTS=(
   [cluster-walk-skips-child]="lib:visibility::tests"
   [clusters-unsorted]="lib:visibility::tests"
   [camera-untimed]="gi::uncached_samples_count"
+  [quarter-lanes-edge-dropped]="lib:visibility::tests"
+  [quarter-lanes-rows-crossed]="lib:visibility::tests"
+  [row-lanes-skip-widened]="lib:visibility::tests"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -99,7 +102,7 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
   search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere
   cluster-cap-halved cluster-tree-node-short cluster-walk-skips-child clusters-unsorted
-  camera-untimed)
+  camera-untimed quarter-lanes-edge-dropped quarter-lanes-rows-crossed row-lanes-skip-widened)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
