@@ -788,32 +788,35 @@ impl SphericalTriangle {
 #[derive(Debug, Clone, Copy)]
 pub struct SphereCap(Cap);
 
-/// What [`cover`] tests a triangle's cells against (module doc).
-#[allow(clippy::large_enum_variant)] // one at a time, made and read where it is needed
-enum Tests {
-    /// Wholly below the tangent plane: no direction of the hemisphere reaches it.
-    Nothing,
-    /// Neither cap bounds the triangle: every cell may see it.
-    Everything,
-    /// The cells a quarter of which passes all three tests that are there, among those
-    /// [`cells_near`] enumerates around `cull`.
-    Cells {
-        cull: Cap,
-        tri_cap: Option<Cap>,
-        exact: Option<SphericalTriangle>,
-        sphere: Option<Cap>,
-    },
+/// The tests [`cover`] runs on a triangle's cells (module doc): the cells a quarter of
+/// which passes every test that is there, among those [`cells_near`] enumerates around
+/// `cull`.
+struct CellTests {
+    cull: Cap,
+    tri_cap: Option<Cap>,
+    exact: Option<SphericalTriangle>,
+    sphere: Option<Cap>,
 }
 
-impl Tests {
-    /// The tests of triangle `tri` seen from `f`, its prim's cap `sphere`.
+impl CellTests {
+    /// The tests of triangle `tri` seen from `f`, its prim's cap `sphere`; `None` where no
+    /// cell needs one: the triangle lies wholly below the tangent plane (no direction of
+    /// the hemisphere reaches it), or neither cap bounds it and every cell of `bits` is
+    /// set.
     #[inline(always)]
-    fn of(f: &RecordFrame, sphere: Option<SphereCap>, tri: &[Vec3; 3], slack: f32) -> Tests {
+    fn of(
+        h: &Hemisphere,
+        f: &RecordFrame,
+        sphere: Option<SphereCap>,
+        tri: &[Vec3; 3],
+        slack: f32,
+        bits: &mut StrataBits,
+    ) -> Option<CellTests> {
         let sphere = sphere.map(|s| s.0);
         let rel = tri.map(|p| p - f.x);
         let len = rel.map(Vec3::length);
         if (0..3).all(|i| rel[i].dot(f.n) < -slack * len[i]) {
-            return Tests::Nothing;
+            return None;
         }
         let mut tri_cap = None;
         let mut exact = None;
@@ -834,15 +837,16 @@ impl Tests {
                 }
             }
         }
-        match tri_cap.or(sphere) {
-            None => Tests::Everything,
-            Some(cull) => Tests::Cells {
-                cull,
-                tri_cap,
-                exact,
-                sphere,
-            },
-        }
+        let Some(cull) = tri_cap.or(sphere) else {
+            (0..h.len()).for_each(|c| bits.set(c));
+            return None;
+        };
+        Some(CellTests {
+            cull,
+            tri_cap,
+            exact,
+            sphere,
+        })
     }
 }
 
@@ -859,18 +863,14 @@ pub fn cover(
     slack: f32,
     bits: &mut StrataBits,
 ) {
-    let (cull, tri_cap, exact, sphere) = match Tests::of(f, sphere, tri, slack) {
-        Tests::Nothing => return,
-        Tests::Everything => {
-            (0..h.len()).for_each(|c| bits.set(c));
-            return;
-        }
-        Tests::Cells {
-            cull,
-            tri_cap,
-            exact,
-            sphere,
-        } => (cull, tri_cap, exact, sphere),
+    let Some(CellTests {
+        cull,
+        tri_cap,
+        exact,
+        sphere,
+    }) = CellTests::of(h, f, sphere, tri, slack, bits)
+    else {
+        return;
     };
     // The caps' thresholds in the row being visited (cells come row by row).
     let mut row = usize::MAX;
@@ -906,38 +906,18 @@ pub fn cover(
     });
 }
 
-/// [`cover`] as the GPU runs it: every cell of `h`, one quarter at a time, each test in
-/// scalar arithmetic. [`cover`] must set the same bits.
+/// [`cover`]'s tests `t` as the GPU runs them: every cell of `h`, one quarter at a time,
+/// each test in scalar arithmetic. [`cover`] must set the same bits.
 #[cfg(test)]
-fn cover_every_cell(
-    h: &Hemisphere,
-    f: &RecordFrame,
-    sphere: Option<SphereCap>,
-    tri: &[Vec3; 3],
-    slack: f32,
-    bits: &mut StrataBits,
-) {
-    let (tri_cap, exact, sphere) = match Tests::of(f, sphere, tri, slack) {
-        Tests::Nothing => return,
-        Tests::Everything => {
-            (0..h.len()).for_each(|c| bits.set(c));
-            return;
-        }
-        Tests::Cells {
-            tri_cap,
-            exact,
-            sphere,
-            ..
-        } => (tri_cap, exact, sphere),
-    };
+fn cover_every_cell(h: &Hemisphere, t: &CellTests, slack: f32, bits: &mut StrataBits) {
     for cell in 0..h.len() {
         let j = cell / h.n as usize;
         if (0..4).any(|i| {
             let c = h.quarters[4 * cell + i];
             let half = &h.half_rows[2 * j + i / 2];
-            tri_cap.is_none_or(|cap| overlaps(&cap, half, c, slack))
-                && exact.as_ref().is_none_or(|t| t.near(half, c, slack))
-                && sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
+            t.tri_cap.is_none_or(|cap| overlaps(&cap, half, c, slack))
+                && t.exact.as_ref().is_none_or(|e| e.near(half, c, slack))
+                && t.sphere.is_none_or(|cap| overlaps(&cap, half, c, slack))
         }) {
             bits.set(cell);
         }
@@ -999,24 +979,16 @@ fn ball_cap(f: &RecordFrame, ball: Bound) -> Option<Cap> {
     })
 }
 
-/// [`adds_nothing`] over every cell of `h`, one quarter at a time in scalar arithmetic.
+/// [`adds_nothing`]'s test over every cell of `h`, one quarter at a time in scalar
+/// arithmetic, for the ball's grown `cap` ([`ball_cap`]).
 #[cfg(test)]
-fn adds_nothing_every_cell(
-    h: &Hemisphere,
-    f: &RecordFrame,
-    ball: Bound,
-    slack: f32,
-    bits: &StrataBits,
-) -> bool {
-    let Some(cap) = ball_cap(f, ball) else {
-        return false;
-    };
+fn cap_adds_nothing(h: &Hemisphere, cap: &Cap, slack: f32, bits: &StrataBits) -> bool {
     (0..h.len()).all(|cell| {
         let j = cell / h.n as usize;
         bits.get(cell)
             || !(0..4).any(|i| {
                 let half = &h.half_rows[2 * j + i / 2];
-                overlaps(&cap, half, h.quarters[4 * cell + i], slack)
+                overlaps(cap, half, h.quarters[4 * cell + i], slack)
             })
     })
 }
@@ -1396,7 +1368,11 @@ mod tests {
                         };
                         for tri in &set.triangles[range.clone()] {
                             cover(&h, &f, sphere, tri, CPU_SLACK, &mut bits);
-                            cover_every_cell(&h, &f, sphere, tri, CPU_SLACK, &mut want);
+                            if let Some(t) =
+                                CellTests::of(&h, &f, sphere, tri, CPU_SLACK, &mut want)
+                            {
+                                cover_every_cell(&h, &t, CPU_SLACK, &mut want);
+                            }
                             assert_eq!(bits, want, "{strata:?}, record at {x}");
                         }
                     }
@@ -1414,7 +1390,9 @@ mod tests {
                     for (ball, _) in set.clusters.iter().flat_map(|t| t.iter().flatten()) {
                         for b in [&bits, &half] {
                             let got = adds_nothing(&h, &f, *ball, CPU_SLACK, b);
-                            assert_eq!(got, adds_nothing_every_cell(&h, &f, *ball, CPU_SLACK, b));
+                            let want = ball_cap(&f, *ball)
+                                .is_some_and(|cap| cap_adds_nothing(&h, &cap, CPU_SLACK, b));
+                            assert_eq!(got, want);
                             passed += got as usize;
                         }
                     }
