@@ -449,8 +449,8 @@ struct RowLanes([Vec4; 4]);
 /// The centres of a cell's four quarters in SIMD lanes: x, y and z, each in the order of
 /// [`Hemisphere::quarters`]. [`cover`] and [`adds_nothing`] test the four at once, each
 /// lane with the arithmetic the one-quarter test uses (the same products and sums in the
-/// same order, so the same bits); the scalar test stopped at the first quarter that
-/// passed.
+/// same order, so the same bits). Four quarters cost about what one costs in scalar, where
+/// a scalar loop saves only the quarters after the first that passes.
 #[derive(Debug, Clone, Copy)]
 struct QuarterLanes([Vec4; 3]);
 
