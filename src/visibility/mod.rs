@@ -801,8 +801,8 @@ struct CellTests {
 impl CellTests {
     /// The tests of triangle `tri` seen from `f`, its prim's cap `sphere`; `None` where no
     /// cell needs one: the triangle lies wholly below the tangent plane (no direction of
-    /// the hemisphere reaches it), or neither cap bounds it and every cell of `bits` is
-    /// set.
+    /// the hemisphere reaches it), or neither cap bounds it (every cell may see it, and
+    /// this sets every cell of `bits`).
     #[inline(always)]
     fn of(
         h: &Hemisphere,
