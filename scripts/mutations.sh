@@ -85,6 +85,7 @@ declare -A TESTS=(
   [quarter-lanes-edge-dropped]="lib:visibility::tests"
   [quarter-lanes-rows-crossed]="lib:visibility::tests"
   [row-lanes-skip-widened]="lib:visibility::tests"
+  [row-columns-one-sided]="lib:visibility::tests"
 )
 ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importance
   no-sample-records weber-never-removes lit-back-faces-enclosed no-neighbour-clamp
@@ -102,7 +103,8 @@ ORDER=(no-reshoot frozen-li d-max-4x no-shadow-ray-reuse-check inverted-importan
   kd-spill-far-dropped grouped-map-next-empty normal-table-bytes-swapped exact-segment-wrong-side
   search-buffers-not-swapped four-lanes-swapped faces-away-open-prims faces-away-inside-sphere
   cluster-cap-halved cluster-tree-node-short cluster-walk-skips-child clusters-unsorted
-  camera-untimed quarter-lanes-edge-dropped quarter-lanes-rows-crossed row-lanes-skip-widened)
+  camera-untimed quarter-lanes-edge-dropped quarter-lanes-rows-crossed row-lanes-skip-widened
+  row-columns-one-sided)
 
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=("${ORDER[@]}")
