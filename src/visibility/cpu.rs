@@ -26,9 +26,9 @@ use super::{
 /// Morton curve and walked as a tree (module doc, "Clusters"), 0.31–0.44 s against
 /// 1.02–1.33 s in three rounds of a slower spell (0.77–0.94 s with the tree alone), the
 /// same EXRs and flags. With a cell's four quarters tested at once in SIMD lanes, and the
-/// enumeration's rows four at a time (`QuarterLanes`, `RowLanes`), 0.25–0.38 s against
-/// 0.32–0.44 s (frames 1–4, three rounds), and 0.98–1.57 s against 1.32–2.05 s at the final
-/// preset (frames 1–2, three rounds); the same flags and EXRs.
+/// enumeration's rows and their columns four at a time (`QuarterLanes`, `RowLanes`),
+/// 0.23–0.35 s against 0.31–0.47 s (frames 1–4, three rounds), and 0.99–1.41 s against
+/// 1.31–1.86 s at the final preset (frames 1–2, three rounds); the same flags and EXRs.
 pub struct CpuVisibility;
 
 impl Visibility for CpuVisibility {
