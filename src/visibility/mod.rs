@@ -589,6 +589,18 @@ fn cos_sum(ca: f32, sa: f32, cb: f32, sb: f32) -> f32 {
     }
 }
 
+/// [`cos_sum`] of one angle's cosine and sine against four others', lane by lane (the
+/// same operations, so the same values).
+#[inline(always)]
+fn cos_sum4(ca: f32, sa: f32, cb: Vec4, sb: Vec4) -> Vec4 {
+    let (ca, sa) = (Vec4::splat(ca), Vec4::splat(sa));
+    Vec4::select(
+        (sa * cb + ca * sb).cmplt(Vec4::ZERO),
+        Vec4::splat(-1.0),
+        ca * cb - sa * sb,
+    )
+}
+
 /// Whether a cell centre `c` of `row` lies within the cap grown by the row's β.
 fn overlaps(cap: &Cap, row: &Row, c: Vec3, slack: f32) -> bool {
     c.dot(cap.axis) >= cos_sum(cap.cos, cap.sin, row.cos_beta, row.sin_beta) - slack
@@ -606,11 +618,10 @@ impl RowCap {
     /// `cap` in row `j`: the threshold of [`overlaps`] for each quarter's half-row.
     #[inline(always)]
     fn of(cap: &Cap, h: &Hemisphere, j: usize, slack: f32) -> RowCap {
-        let [a, b] = [&h.half_rows[2 * j], &h.half_rows[2 * j + 1]]
-            .map(|row| cos_sum(cap.cos, cap.sin, row.cos_beta, row.sin_beta) - slack);
+        let [cos_beta, sin_beta] = h.half_row_lanes[j];
         RowCap {
             axis: cap.axis,
-            at_least: Vec4::new(a, a, b, b),
+            at_least: cos_sum4(cap.cos, cap.sin, cos_beta, sin_beta) - Vec4::splat(slack),
         }
     }
 
@@ -1065,13 +1076,7 @@ fn cells_near(h: &Hemisphere, cull: &Cap, slack: f32, mut visit: impl FnMut(usiz
     // the cell test's), each with its first and last column.
     let rows = h.row_lanes.iter().enumerate().flat_map(|(g, lanes)| {
         let [cos_theta, sin_theta, cos_beta, sin_beta] = lanes.0;
-        let (ca, sa) = (Vec4::splat(cull.cos), Vec4::splat(cull.sin));
-        // `cos_sum` in lanes.
-        let k_min = Vec4::select(
-            (sa * cos_beta + ca * sin_beta).cmplt(Vec4::ZERO),
-            Vec4::splat(-1.0),
-            ca * cos_beta - sa * sin_beta,
-        ) - Vec4::splat(slack);
+        let k_min = cos_sum4(cull.cos, cull.sin, cos_beta, sin_beta) - Vec4::splat(slack);
         let along = cos_theta * Vec4::splat(cull.axis.z);
         let across = sin_theta * Vec4::splat(rho);
         let skip = (along + across).cmplt(k_min - Vec4::splat(1e-4)).bitmask();
