@@ -316,24 +316,7 @@ pub fn update(
 ) -> Result<AnchorStats, visibility::Error> {
     let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
     let mut st = AnchorStats::default();
-    let set = anchors.get_or_insert_with(|| {
-        let (lo, hi) = ctx.scene.static_box();
-        AnchorSet::new(Quantizer::new(lo, hi))
-    });
-
-    let t = Instant::now();
-    let at = AnchorPlaces::of(set);
-    if albedo {
-        refresh_albedo(ctx, set, &at);
-    }
-    let (count, mut changed, nearest) =
-        reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k, pm.direct), &at);
-    st.anchors_reestimated = count;
-    if albedo {
-        changed.fill(true); // every anchor may reflect another colour
-    }
-    relink_photons(set, pm, &at, &nearest);
-    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    let (set, changed) = reestimate(ctx, anchors, pm, params, albedo, &mut st, timings);
 
     let t = Instant::now();
     let before = cache.len();
@@ -385,6 +368,41 @@ pub fn update(
     Ok(st)
 }
 
+/// The phase every frame's cache work opens with (Pseudocode 2, §3.3.2): the anchor set
+/// (made on the first frame, over the static scene's box), each anchor's albedo read again
+/// with `albedo` ([`refresh_albedo`]), L_i re-estimated at every anchor whose photons
+/// changed, and the photons linked again to their nearest anchors; timed as irradiance
+/// estimation. The set, and which anchors changed (with `albedo`, all of them: each may
+/// reflect another colour).
+fn reestimate<'a>(
+    ctx: &FrameContext,
+    anchors: &'a mut Option<AnchorSet>,
+    pm: &PhotonMap,
+    params: &GiParams,
+    albedo: bool,
+    st: &mut AnchorStats,
+    timings: &mut GatherTimings,
+) -> (&'a mut AnchorSet, Vec<bool>) {
+    let set = anchors.get_or_insert_with(|| {
+        let (lo, hi) = ctx.scene.static_box();
+        AnchorSet::new(Quantizer::new(lo, hi))
+    });
+    let t = Instant::now();
+    let at = AnchorPlaces::of(set);
+    if albedo {
+        refresh_albedo(ctx, set, &at);
+    }
+    let k = params.anchors.anchor_k(params.k as usize, pm.direct);
+    let (count, mut changed, nearest) = reestimate_anchors(ctx.scene, set, pm, k, &at);
+    st.anchors_reestimated = count;
+    if albedo {
+        changed.fill(true);
+    }
+    relink_photons(set, pm, &at, &nearest);
+    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    (set, changed)
+}
+
 /// Watch mode's relight (a light or a material changed; geometry and camera are as when the
 /// cache was made for this very frame): Pseudocode 2 without visibility detection or record
 /// placement. Every record, stratum link and anchor is kept; L_i is re-estimated at every
@@ -406,23 +424,7 @@ pub fn relight(
 ) -> AnchorStats {
     let (cp, ap, k) = (&params.cache, &params.anchors, params.k as usize);
     let mut st = AnchorStats::default();
-    let set = anchors.get_or_insert_with(|| {
-        let (lo, hi) = ctx.scene.static_box();
-        AnchorSet::new(Quantizer::new(lo, hi))
-    });
-    let t = Instant::now();
-    let at = AnchorPlaces::of(set);
-    if albedo {
-        refresh_albedo(ctx, set, &at);
-    }
-    let (count, mut changed, nearest) =
-        reestimate_anchors(ctx.scene, set, pm, ap.anchor_k(k, pm.direct), &at);
-    st.anchors_reestimated = count;
-    if albedo {
-        changed.fill(true);
-    }
-    relink_photons(set, pm, &at, &nearest);
-    timings.irradiance_estimation += t.elapsed().as_secs_f64();
+    let (set, changed) = reestimate(ctx, anchors, pm, params, albedo, &mut st, timings);
 
     let att = Attacher {
         frame: ctx.scene,
