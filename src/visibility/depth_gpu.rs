@@ -311,18 +311,7 @@ impl GpuDepthMaps {
                 contents: bytemuck::cast_slice(&data),
                 usage: wgpu::BufferUsages::STORAGE,
             });
-        let b_hits = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("depth hits"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let b_read = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("depth readback"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let (b_hits, b_read) = output_and_readback(&self.device, "depth hits", out_bytes);
         let entries: Vec<wgpu::BindGroupEntry> = [
             &b_params,
             &statics.nodes,
@@ -501,6 +490,34 @@ impl DepthMaps for GpuDepthMaps {
     ) -> Result<Vec<Option<Hit>>, Error> {
         self.closest_counting(frame, queries).map(|(h, ..)| h)
     }
+}
+
+/// A storage buffer of `size` bytes for a pass's results (zeroed: wgpu starts every buffer
+/// so) and the `MAP_READ` buffer they are copied into for [`submit_and_map`] (for the depth
+/// maps here and for visibility in `gpu.rs`).
+pub(super) fn output_and_readback(
+    device: &wgpu::Device,
+    label: &str,
+    size: u64,
+) -> (wgpu::Buffer, wgpu::Buffer) {
+    let buffer = |label: &str, usage| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    (
+        buffer(
+            label,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        ),
+        buffer(
+            &format!("{label} readback"),
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        ),
+    )
 }
 
 /// Submits `encoder` (for the depth maps here and for visibility in `gpu.rs`), whose last

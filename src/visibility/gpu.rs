@@ -250,19 +250,9 @@ impl Visibility for GpuVisibility {
         let b_prim = self.buffer("tri_prim", bytemuck::cast_slice(&tri_prim), read);
         let b_prims = self.buffer("prims", bytemuck::cast_slice(&prim_data), read);
         let b_grid = self.buffer("grid", bytemuck::cast_slice(&grid), read);
-        // New buffers start zeroed (wgpu guarantees it).
-        let b_flags = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("flags"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let b_read = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("flags readback"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        // The flags start zeroed (wgpu guarantees it).
+        let (b_flags, b_read) =
+            super::depth_gpu::output_and_readback(&self.device, "flags", out_bytes);
 
         // Chunks of records small enough for u32 pair indices and the dispatch limits.
         let tris = set.triangles.len() as u64;
