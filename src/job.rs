@@ -868,17 +868,12 @@ const MAX_JOB_BYTES: u64 = 16 << 20;
 /// are limited to 255 bytes.
 const MAX_NAME_BYTES: usize = 200;
 
-/// The job file's text: a regular file of at most [`MAX_JOB_BYTES`].
+/// The job file's text: a regular file of at most [`MAX_JOB_BYTES`] (a FIFO, a device or a
+/// directory is refused before it is opened: [`crate::scene::gltf::open_limited`]).
 fn read_job_text(path: &Path) -> Result<String> {
     use std::io::Read;
     let fail = |m: String| Error::input(path, "file", m);
-    let f = std::fs::File::open(path).map_err(|e| fail(format!("cannot read job file: {e}")))?;
-    let meta = f
-        .metadata()
-        .map_err(|e| fail(format!("cannot read job file: {e}")))?;
-    if !meta.is_file() {
-        return Err(fail("is not a regular file".into()));
-    }
+    let (f, _) = crate::scene::gltf::open_limited(path, "file", MAX_JOB_BYTES)?;
     let mut text = String::new();
     f.take(MAX_JOB_BYTES + 1)
         .read_to_string(&mut text)

@@ -61,8 +61,8 @@ enum Command {
         resume: Option<PathBuf>,
         /// Render N frames before the range without writing them, so that it starts from a
         /// warm state (a farm chunk that runs in parallel with the others; never before the
-        /// animation's first frame).
-        #[arg(long, value_name = "N", default_value_t = 0)]
+        /// animation's first frame). At most as many as a job's frames may be.
+        #[arg(long, value_name = "N", default_value_t = 0, value_parser = warmup_frames())]
         warmup: u32,
         /// Write a checkpoint (NAME.####.state) to DIR after frames of the range.
         #[arg(long, value_name = "DIR")]
@@ -121,7 +121,13 @@ enum Command {
         #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
         chunk_size: u32,
         /// Parallel chunks, each rendering N unwritten frames before its range.
-        #[arg(long, value_name = "N", default_value_t = DEFAULT_WARMUP, conflicts_with = "chained")]
+        #[arg(
+            long,
+            value_name = "N",
+            default_value_t = DEFAULT_WARMUP,
+            conflicts_with = "chained",
+            value_parser = warmup_frames()
+        )]
         warmup: u32,
         /// Chunks run one after another, each resuming the previous chunk's last state: the
         /// frames of one render, byte for byte.
@@ -202,9 +208,40 @@ fn parse_frames(s: &str) -> Result<FrameRange, Error> {
 /// the seam error this leaves, measured).
 const DEFAULT_WARMUP: u32 = 0;
 
+/// A warm-up's frame count: at most [`anchorage::job::MAX_FRAMES`], as a job's frames.
+fn warmup_frames() -> clap::builder::RangedI64ValueParser<u32> {
+    clap::value_parser!(u32).range(..=anchorage::job::MAX_FRAMES)
+}
+
 /// Most worker threads `--threads` may ask for: far more than any machine's cores, far fewer
 /// than would exhaust its memory for stacks.
 const MAX_THREADS: usize = 1024;
+
+/// Refuses a farm template written over an input: the job file or a file its scene reads
+/// (the same file by any path, link or hard link, where it exists).
+fn refuse_overwriting_inputs<'a>(
+    template: &Path,
+    job: &'a Path,
+    scene: impl Iterator<Item = &'a Path>,
+) -> Result<(), Error> {
+    use std::os::unix::fs::MetadataExt;
+    let Ok(t) = std::fs::metadata(template) else {
+        return Ok(());
+    };
+    let same =
+        |p: &Path| std::fs::metadata(p).is_ok_and(|m| (m.dev(), m.ino()) == (t.dev(), t.ino()));
+    if let Some(input) = std::iter::once(job).chain(scene).find(|p| same(p)) {
+        return Err(Error::input(
+            template,
+            "--template",
+            format!(
+                "is {}, which the job reads: the template would overwrite it",
+                input.display()
+            ),
+        ));
+    }
+    Ok(())
+}
 
 fn set_threads(threads: Option<usize>) -> Result<(), Error> {
     if let Some(n) = threads {
@@ -377,10 +414,22 @@ fn run(cli: Cli) -> Result<(), Error> {
             if let Some(list) = measure_warmup {
                 let warmups = list
                     .split(',')
-                    .map(|v| v.trim().parse::<u32>())
-                    .collect::<Result<Vec<u32>, _>>()
-                    .map_err(|_| {
-                        Error::input("--measure-warmup", &list, "expected frame counts N,N,..")
+                    .map(|v| {
+                        v.trim()
+                            .parse::<u32>()
+                            .ok()
+                            .filter(|&n| i64::from(n) <= anchorage::job::MAX_FRAMES)
+                    })
+                    .collect::<Option<Vec<u32>>>()
+                    .ok_or_else(|| {
+                        Error::input(
+                            "--measure-warmup",
+                            &list,
+                            format!(
+                                "expected frame counts N,N,.. of at most {}",
+                                anchorage::job::MAX_FRAMES
+                            ),
+                        )
                     })?;
                 anchorage::budget::check(&job, &scene, None)?;
                 let rows = farm::measure_seams(&job, &scene, chunk_size, &warmups, |m| {
@@ -403,6 +452,9 @@ fn run(cli: Cli) -> Result<(), Error> {
                 Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
                 _ => PathBuf::from("."),
             };
+            if let Some(path) = &template {
+                refuse_overwriting_inputs(path, &job.path, scene.files())?;
+            }
             let t = farm::template(&job, chunk_size, split, &exe, &dir)?;
             let text = serde_json::to_string_pretty(&t).expect("a JSON value serialises") + "\n";
             match template {

@@ -204,6 +204,88 @@ fn limits_refuse_jobs_before_they_start() {
         "output.name",
     );
     refused(&["validate", "/dev/zero"], "not a regular file");
+    let j = job("");
+    refused(&["render", &j, "--warmup", "100001"], "--warmup");
+    refused(
+        &["farm", &j, "--chunk-size", "4", "--warmup", "4000000000"],
+        "--warmup",
+    );
+    refused(
+        &[
+            "farm",
+            &j,
+            "--chunk-size",
+            "4",
+            "--measure-warmup",
+            "1,100001",
+        ],
+        "--measure-warmup",
+    );
+    // A farm template written over the job file or a scene file it reads, by any name.
+    let link = dir.path().join("link.json");
+    std::os::unix::fs::symlink(&j, &link).unwrap();
+    let before = std::fs::read(&j).unwrap();
+    for over in [j.as_str(), link.to_str().unwrap(), room.to_str().unwrap()] {
+        refused(&["farm", &j, "--chunk-size", "4", "-o", over], "--template");
+    }
+    assert_eq!(std::fs::read(&j).unwrap(), before, "the job file changed");
+}
+
+/// A FIFO where a regular file belongs (the job, a scene, a checkpoint to resume from) is
+/// refused at once with exit 2: opening one to read would wait for a writer forever.
+#[test]
+fn fifos_are_refused_without_waiting_for_a_writer() {
+    let dir = tempdir();
+    let fifo = |name: &str| {
+        let p = dir.path().join(name);
+        let ok = Command::new("mkfifo").arg(&p).status().unwrap().success();
+        assert!(ok, "mkfifo {}", p.display());
+        p.to_str().unwrap().to_string()
+    };
+    let job_with = |name: &str, scene: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(
+            &p,
+            format!(r#"{{"scene":[{{"path":"{scene}"}}],"output":{{"directory":"out"}}}}"#),
+        )
+        .unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    let room = root().join("examples/room/room.gltf");
+    let job = job_with("job.json", room.to_str().unwrap());
+    let fifo_job = fifo("fifo.json");
+    let fifo_scene = fifo("scene.gltf");
+    let on_fifo_scene = job_with("fifo_scene.json", &fifo_scene);
+    let fifo_state = fifo("room.0000.state");
+    for args in [
+        vec!["validate", fifo_job.as_str()],
+        vec!["inspect", fifo_scene.as_str()],
+        vec!["validate", on_fifo_scene.as_str()],
+        vec!["render", &job, "--frames", "1", "--resume", &fifo_state],
+    ] {
+        let mut child = bin()
+            .args(&args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let start = Instant::now();
+        let status = loop {
+            if let Some(s) = child.try_wait().unwrap() {
+                break s;
+            }
+            if start.elapsed() > Duration::from_secs(60) {
+                child.kill().unwrap();
+                panic!("{args:?} still waits after a minute");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        let mut err = String::new();
+        std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+        assert_eq!(status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("not a regular file"), "{args:?}: {err}");
+        assert!(!dir.path().join("out").exists(), "{args:?} wrote output");
+    }
 }
 
 /// While a batch of new records is gathered, a render holds the strata and radiance the
