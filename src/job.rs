@@ -708,6 +708,7 @@ impl Job {
                 }
             }
         }
+        scene.check_camera((self.frames.start..=self.frames.end).map(|f| (f, self.time_of(f))))?;
         Ok(scene)
     }
 

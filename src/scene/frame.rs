@@ -226,9 +226,38 @@ pub struct CameraRay {
 }
 
 impl FrameCamera {
+    /// Why a camera node with world matrix `world` can place no view, if it cannot: glTF
+    /// 2.0 §3.10 makes the view matrix the inverse of the camera node's global transform,
+    /// so every axis of it needs a non-zero, finite scale (a zero scale collapses the view
+    /// and makes the far clip depth ∞ × 0), and the mean scale that the clip depths are
+    /// multiplied by ([`Self::from_matrix`]) must stay a positive, finite f32. Non-uniform
+    /// and mirroring scales place a view.
+    pub fn placement_error(world: DMat4, clip: Clip) -> Option<String> {
+        let (scale, rot, origin) = world.to_scale_rotation_translation();
+        let s = (scale.abs().element_sum() / 3.0) as f32;
+        let why = if !(world.is_finite() && scale.is_finite() && origin.is_finite()) {
+            "is not finite"
+        } else if !(scale.abs().min_element() > 0.0 && rot.is_finite()) {
+            "is singular (an axis is scaled to zero)"
+        } else if !(s > 0.0 && s.is_finite() && (clip.near * s).is_finite()) {
+            "scales the clip depths out of f32's range"
+        } else {
+            return None;
+        };
+        Some(format!(
+            "the camera's world transform (translation {:?}, scale {:?}) {why}, so it \
+             places no view (glTF 2.0 §3.10: the view matrix is its inverse); give the \
+             camera node and its ancestors a non-zero, finite scale",
+            origin.to_array(),
+            scale.to_array()
+        ))
+    }
+
     /// From a camera node's world matrix (scale removed: cameras look along −Z), in the
     /// render space whose origin is the world point `render_origin`. The clip depths are in
-    /// the node's units, so they scale with the node's world scale as the scene does.
+    /// the node's units, so they scale with the node's world scale as the scene does. The
+    /// matrix must place a view ([`Self::placement_error`]: [`super::Scene::check_camera`]
+    /// refuses a camera whose matrix does not at a frame it renders).
     pub fn from_matrix(
         world: DMat4,
         render_origin: DVec3,

@@ -264,3 +264,142 @@ fn render_space_is_centred_on_the_static_set() {
         );
     }
 }
+
+/// A glTF of one triangle seen by the camera node "cam" 3 units away. The camera's scale is
+/// `scale`; when `animated`, it goes linearly from 1 at t = 0 to `scale` at t = 1.
+fn camera_gltf(scale: [f32; 3], animated: bool) -> String {
+    let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
+    let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    bin.extend(floats(&[0.0, 1.0]));
+    bin.extend(floats(&[1.0, 1.0, 1.0]));
+    bin.extend(floats(&scale));
+    let (rest, animations) = if animated {
+        (
+            [1.0f32; 3],
+            r#","animations":[{"samplers":[{"input":1,"output":2}],"channels":[{"sampler":0,"target":{"node":1,"path":"scale"}}]}]"#,
+        )
+    } else {
+        (scale, "")
+    };
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scenes":[{{"nodes":[0,1]}}],
+        "nodes":[{{"name":"tri","mesh":0}},{{"name":"cam","camera":0,"translation":[0.3,0.3,3],"scale":{rest:?}}}],
+        "cameras":[{{"type":"perspective","perspective":{{"yfov":0.8,"znear":0.1}}}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+        "accessors":[
+          {{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+          {{"bufferView":0,"byteOffset":36,"componentType":5126,"count":2,"type":"SCALAR","min":[0],"max":[1]}},
+          {{"bufferView":0,"byteOffset":44,"componentType":5126,"count":2,"type":"VEC3"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":68}}],
+        "buffers":[{{"byteLength":68,"uri":"data:application/octet-stream;base64,{}"}}]{animations}}}"#,
+        base64_encode(&bin)
+    )
+}
+
+/// Regression: a camera node scaled to zero rendered black frames with exit 0 (its far
+/// clip depth was ∞ × 0 and its view axes NaN). `validate` and `render` refuse it with
+/// exit 2, naming the node and the frame, and render nothing; a scale animated to zero is
+/// refused at the frame it reaches zero (frame 24 at 24 fps), while the frames before it
+/// load; a non-uniform, mirroring scale still places a view.
+#[test]
+fn a_camera_scaled_to_zero_is_refused_at_its_frame() {
+    let dir = tempdir();
+    let out = dir.path().join("out");
+    let job = |name: &str, scale: [f32; 3], animated: bool, end: i32| {
+        std::fs::write(dir.path().join(name), camera_gltf(scale, animated)).unwrap();
+        let path = dir.path().join(format!("{name}.json"));
+        std::fs::write(
+            &path,
+            format!(
+                r#"{{"scene":[{{"path":"{name}"}}],"resolution":[8,6],"frames":{{"start":0,"end":{end}}},
+                "method":{{"name":"direct"}},"output":{{"directory":{:?}}}}}"#,
+                out.to_str().unwrap()
+            ),
+        )
+        .unwrap();
+        path
+    };
+    let still = job("still.gltf", [0.0; 3], false, 0);
+    for cmd in ["validate", "render"] {
+        let o = run(&[cmd, still.to_str().unwrap()]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {err}");
+        assert!(
+            err.contains("still.gltf")
+                && err.contains("nodes[1] \"cam\"")
+                && err.contains("frame 0"),
+            "{cmd}: {err}"
+        );
+    }
+    assert!(!out.exists(), "nothing rendered");
+    let animated = job("animated.gltf", [0.0, 1.0, 1.0], true, 24);
+    let o = run(&["validate", animated.to_str().unwrap()]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("nodes[1] \"cam\"") && err.contains("frame 24"),
+        "{err}"
+    );
+    let before = job("before.gltf", [0.0, 1.0, 1.0], true, 23);
+    let o = run(&["validate", before.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let mirrored = job("mirrored.gltf", [-2.0, 0.5, 1.0], false, 0);
+    let o = run(&["render", mirrored.to_str().unwrap(), "-q"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+}
+
+/// Regression: the example room moved 1e16 from the origin (by its layer's transform or by
+/// a glTF root node) rendered black with exit 0, and at 1e15 lost part of it: f64 and the
+/// f32 render space cannot place it. Beyond [`anchorage::scene::DISTANCE_LIMIT`] times its
+/// size `validate` and `render` refuse it with exit 2, naming the layer; 1e6 from the
+/// origin at scale 1e-3 (1.2e8 times its size) and 1e9 at scale 1 load.
+#[test]
+fn a_scene_too_far_from_the_origin_for_its_size_is_refused() {
+    let limit = anchorage::scene::DISTANCE_LIMIT;
+    assert!(
+        limit >= 10.0 * 1e6 / 8.5e-3,
+        "the room 1e6 from the origin at scale 1e-3 is within the limit with margin"
+    );
+    let dir = tempdir();
+    let room = example_job().parent().unwrap().join("room.gltf");
+    let job = |t: f64, s: f64| {
+        let path = dir.path().join(format!("j{t:e}_{s:e}.json"));
+        std::fs::write(
+            &path,
+            format!(
+                r#"{{"scene":[{{"path":{:?},"transform":{{"translation":[{t:e},0,0],"scale":{s:e}}}}}],
+                "resolution":[8,6],"output":{{"directory":{:?}}}}}"#,
+                room.to_str().unwrap(),
+                dir.path().join("out").to_str().unwrap()
+            ),
+        )
+        .unwrap();
+        path
+    };
+    for (t, s) in [(1e16, 1.0), (-1e15, 1.0), (1e11, 1.0), (1e8, 1e-3)] {
+        let job = job(t, s);
+        for cmd in ["validate", "render"] {
+            let o = run(&[cmd, job.to_str().unwrap()]);
+            let err = stderr(&o);
+            assert_eq!(
+                o.status.code(),
+                Some(2),
+                "{cmd} {t:e} at scale {s:e}: {err}"
+            );
+            assert!(
+                err.contains("scene[0]") && err.contains("from the world origin"),
+                "{cmd} {t:e} at scale {s:e}: {err}"
+            );
+        }
+    }
+    assert!(!dir.path().join("out").exists(), "nothing rendered");
+    for (t, s) in [(1e6, 1e-3), (-1e6, 1e-3), (1e9, 1.0)] {
+        let o = run(&["validate", job(t, s).to_str().unwrap()]);
+        assert_eq!(
+            o.status.code(),
+            Some(0),
+            "{t:e} at scale {s:e}: {}",
+            stderr(&o)
+        );
+    }
+}

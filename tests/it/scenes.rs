@@ -384,3 +384,87 @@ fn scene_files_match_the_manifest_hashes() {
         wrong.join("\n  ")
     );
 }
+
+/// Regression: the glTF's `scene` was ignored and every node with a mesh, light or camera
+/// was rendered. Only the subtrees of its default scene's root nodes are (glTF 2.0 §3.5):
+/// here `scene` is 1, which holds "shown" (and its child "lamp") and "cam_in", and leaves out
+/// "hidden", "lamp_out" and "cam_out" (listed first, so it was the default camera). An
+/// animation of a left-out node still loads, and a file without `scenes` shows every
+/// parentless node's subtree.
+#[test]
+fn only_the_nodes_of_the_default_scene_are_rendered() {
+    let dir = tempdir();
+    let floats = |v: &[f32]| v.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>();
+    let mut bin = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]); // positions
+    bin.extend(floats(&[0.0, 1.0])); // times
+    bin.extend(floats(&[0.0, 0.0, 0.0, 0.0, 0.0, 1.0])); // translations
+    let b64 = base64_encode(&bin);
+    let gltf = |scenes: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},{scenes}"extensionsUsed":["KHR_lights_punctual"],
+            "extensions":{{"KHR_lights_punctual":{{"lights":[{{"type":"point","intensity":5}}]}}}},
+            "nodes":[{{"name":"cam_out","camera":0,"translation":[0,0,4]}},
+                     {{"name":"hidden","mesh":0,"translation":[5,0,0]}},
+                     {{"name":"lamp_out","extensions":{{"KHR_lights_punctual":{{"light":0}}}}}},
+                     {{"name":"shown","mesh":0,"children":[4]}},
+                     {{"name":"lamp","translation":[0,0,2],"extensions":{{"KHR_lights_punctual":{{"light":0}}}}}},
+                     {{"name":"cam_in","camera":0,"translation":[0,0,3]}}],
+            "cameras":[{{"type":"perspective","perspective":{{"yfov":0.8,"znear":0.1}}}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+            "animations":[{{"name":"slide","samplers":[{{"input":1,"output":2}}],"channels":[{{"sampler":0,"target":{{"node":1,"path":"translation"}}}}]}}],
+            "accessors":[
+              {{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+              {{"bufferView":0,"byteOffset":36,"componentType":5126,"count":2,"type":"SCALAR","min":[0],"max":[1]}},
+              {{"bufferView":0,"byteOffset":44,"componentType":5126,"count":2,"type":"VEC3"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":68}}],
+            "buffers":[{{"byteLength":68,"uri":"data:application/octet-stream;base64,{b64}"}}]}}"#
+        )
+    };
+    let load = |name: &str, scenes: &str| {
+        std::fs::write(dir.path().join(name), gltf(scenes)).unwrap();
+        job_from_json(
+            &dir.path().join("j.json"),
+            &format!(r#"{{"scene":[{{"path":"{name}"}}]}}"#),
+        )
+        .unwrap()
+        .load_scene()
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+    };
+    let two = load(
+        "two.gltf",
+        r#""scene":1,"scenes":[{"nodes":[0,1,2,3,5]},{"nodes":[3,5]}],"#,
+    );
+    let t = 0.5;
+    let triangles = two.geometry(t, Motion::Static).len() + two.geometry(t, Motion::Dynamic).len();
+    assert_eq!(triangles, 1, "only \"shown\" is rendered, not \"hidden\"");
+    let lights = two.lights(t);
+    assert_eq!(lights.len(), 1, "only \"lamp\" lights the scene");
+    assert!((lights[0].position.z - 2.0).abs() < 1e-6);
+    assert!(
+        matches!(
+            two.camera,
+            Some(anchorage::scene::CameraChoice::Node { node: 5, .. })
+        ),
+        "the default camera is \"cam_in\", not \"cam_out\": {:?}",
+        two.camera
+    );
+    let warnings = two.warnings().join("\n");
+    assert!(
+        warnings.contains("\"cam_out\"")
+            && warnings.contains("\"hidden\"")
+            && warnings.contains("\"lamp_out\""),
+        "{warnings}"
+    );
+    let all = load("none.gltf", "");
+    let triangles = all.geometry(t, Motion::Static).len() + all.geometry(t, Motion::Dynamic).len();
+    assert_eq!(
+        triangles, 2,
+        "without scenes, every parentless node is shown"
+    );
+    assert_eq!(all.lights(t).len(), 2);
+    assert!(
+        all.warnings().iter().all(|w| !w.contains("scene")),
+        "{:?}",
+        all.warnings()
+    );
+}
