@@ -1,9 +1,10 @@
 //! glTF 2.0 import: `.gltf` with external or embedded buffers and images, and `.glb`.
 //!
 //! The `gltf` crate parses and validates; this module checks what the crate leaves to the
-//! caller (extensions, files that exist, accessor bounds, finite positions, index ranges)
-//! so that bad input is an [`Error::Input`] naming the file and the element at fault, never
-//! a panic, and converts the document into the renderer's own [`Layer`] description.
+//! caller (extensions, files that exist, accessor bounds, sparse indices, finite positions,
+//! weights and inverse bind matrices, index and joint ranges, light values) so that bad input
+//! is an [`Error::Input`] naming the file and the element at fault, never a panic, and
+//! converts the document into the renderer's own [`Layer`] description.
 
 use std::path::{Path, PathBuf};
 
@@ -119,7 +120,8 @@ pub fn load(path: &Path, offsets: Offsets) -> Result<Loaded> {
              roughness 1; {ROUGH_METAL}"
         ));
     }
-    let skins = r.skins();
+    let skins = r.skins()?;
+    r.check_joints()?;
     let lights = r.lights()?;
     let cameras = r.cameras()?;
     let (nodes, roots) = r.nodes()?;
@@ -198,9 +200,15 @@ pub const MAX_RESOURCE_BYTES: u64 = u32::MAX as u64;
 pub const MAX_IMAGE_TEXELS: u64 = 16384 * 16384;
 
 /// Opens `file` (element `at` of the input), which must be a regular file of at most `limit`
-/// bytes: the file and its length, or an error naming it, before anything is read.
+/// bytes: the file and its length, or an error naming it, before anything is read. A FIFO,
+/// socket or device is refused from its metadata before it is opened (opening a FIFO for
+/// reading waits for a writer), and the opened file is checked again.
 pub fn open_limited(file: &Path, at: &str, limit: u64) -> Result<(std::fs::File, u64)> {
     let bad = |m: String| Error::input(file, at, m);
+    let meta = std::fs::metadata(file).map_err(|e| bad(format!("cannot read: {e}")))?;
+    if !meta.is_file() {
+        return Err(bad("is not a regular file".into()));
+    }
     let f = std::fs::File::open(file).map_err(|e| bad(format!("cannot read: {e}")))?;
     let meta = f.metadata().map_err(|e| bad(format!("cannot read: {e}")))?;
     if !meta.is_file() {
@@ -776,6 +784,15 @@ impl<'a> Reader<'a> {
             .read_weights(0)
             .map(|w| w.into_f32().collect())
             .unwrap_or_default();
+        if let Some(v) = weights
+            .iter()
+            .position(|w| !w.iter().all(|x| x.is_finite()))
+        {
+            return Err(self.bad(
+                &format!("{at}.attributes.WEIGHTS_0"),
+                format!("vertex {v}'s weights {:?} are not finite", weights[v]),
+            ));
+        }
         let targets = self.morph_targets(at, r.read_morph_targets(), positions.len())?;
         let local = p.material().index().and_then(|i| materials.get(i));
         let material = match p.material().index() {
@@ -868,8 +885,8 @@ impl<'a> Reader<'a> {
     }
 
     /// Reads `skins` (glTF 2.0 §3.7.3): joints and inverse bind matrices, identity where the
-    /// file gives none.
-    fn skins(&self) -> Vec<Skin> {
+    /// file gives none; the matrices must be finite.
+    fn skins(&self) -> Result<Vec<Skin>> {
         self.doc
             .skins()
             .map(|s| {
@@ -879,16 +896,76 @@ impl<'a> Reader<'a> {
                     Some(m) => m.map(|c| Mat4::from_cols_array_2d(&c)).collect(),
                     None => vec![Mat4::IDENTITY; joints.len()],
                 };
-                Skin {
+                if let Some(k) = inverse_bind.iter().position(|m| !m.is_finite()) {
+                    return Err(self.bad(
+                        &format!(
+                            "{}.inverseBindMatrices",
+                            name_of("skins", s.index(), s.name())
+                        ),
+                        format!("matrix {k} is not finite"),
+                    ));
+                }
+                Ok(Skin {
                     joints,
                     inverse_bind,
-                }
+                })
             })
             .collect()
     }
 
-    /// Reads the `KHR_lights_punctual` lights; intensity and colour must be finite and
-    /// intensity non-negative.
+    /// Checks that the primitives of every node with a skin name, in `JOINTS_0`, only joints
+    /// that skin has (glTF 2.0 §3.7.3): a vertex bound to a joint past the skin's `joints`
+    /// would follow no joint.
+    fn check_joints(&self) -> Result<()> {
+        // The largest joint index each primitive names, with the vertex that names it.
+        let largest: Vec<Vec<Option<(usize, u16)>>> = self
+            .doc
+            .meshes()
+            .map(|m| {
+                m.primitives()
+                    .map(|p| {
+                        p.reader(self.data())
+                            .read_joints(0)?
+                            .into_u16()
+                            .enumerate()
+                            .map(|(v, j)| (v, j.into_iter().max().unwrap_or(0)))
+                            .max_by_key(|&(_, j)| j)
+                    })
+                    .collect()
+            })
+            .collect();
+        for n in self.doc.nodes() {
+            let (Some(mesh), Some(skin)) = (n.mesh(), n.skin()) else {
+                continue;
+            };
+            let joints = skin.joints().len();
+            for (p, max) in largest[mesh.index()].iter().enumerate() {
+                if let Some((v, j)) = *max
+                    && j as usize >= joints
+                {
+                    return Err(self.bad(
+                        &format!(
+                            "{}.primitives[{p}].attributes.JOINTS_0",
+                            name_of("meshes", mesh.index(), mesh.name())
+                        ),
+                        format!(
+                            "vertex {v} names joint {j}, but {}, the skin of {}, has {joints} joints",
+                            name_of("skins", skin.index(), skin.name()),
+                            name_of("nodes", n.index(), n.name())
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads the `KHR_lights_punctual` lights. Values the extension's specification forbids
+    /// are errors: a colour or intensity negative or not finite, a range not positive, spot
+    /// cone angles outside 0 ≤ inner < outer ≤ π/2. So is a light the renderer cannot
+    /// represent in f32: colour × intensity (the intensity it renders per channel) or a point
+    /// or spot light's power bound 4π × colour × intensity not finite, or an outer cone angle
+    /// whose cosine rounds to 1 (a cone that lights nothing).
     fn lights(&self) -> Result<Vec<Light>> {
         let lights: Vec<Light> = self
             .doc
@@ -896,11 +973,64 @@ impl<'a> Reader<'a> {
             .map(|ls| ls.map(light).collect())
             .unwrap_or_default();
         for (i, l) in lights.iter().enumerate() {
-            if !(l.intensity.is_finite() && l.intensity >= 0.0 && l.color.is_finite()) {
-                return Err(self.bad(
-                    &name_of("KHR_lights_punctual.lights", i, Some(&l.name)),
-                    "intensity and colour must be finite and non-negative",
+            let at = name_of("extensions.KHR_lights_punctual.lights", i, Some(&l.name));
+            let bad = |key: &str, m: String| self.bad(&format!("{at}.{key}"), m);
+            if !(l.intensity.is_finite() && l.intensity >= 0.0) {
+                return Err(bad(
+                    "intensity",
+                    format!("{:?} must be finite and non-negative", l.intensity),
                 ));
+            }
+            let color = l.color.to_array();
+            if !(l.color.is_finite() && l.color.min_element() >= 0.0) {
+                return Err(bad(
+                    "color",
+                    format!("{color:?} must be finite and non-negative"),
+                ));
+            }
+            let radiant = l.color * l.intensity;
+            let power = 4.0 * std::f32::consts::PI * radiant;
+            let point = matches!(l.kind, LightKind::Point | LightKind::Spot { .. });
+            if !radiant.is_finite() || (point && !power.is_finite()) {
+                let what = if radiant.is_finite() {
+                    "the power bound 4π × colour × intensity"
+                } else {
+                    "colour × intensity"
+                };
+                return Err(self.bad(
+                    &at,
+                    format!(
+                        "{what} overflows f32 (colour {color:?}, intensity {:?})",
+                        l.intensity
+                    ),
+                ));
+            }
+            if let Some(r) = l.range
+                && !(r.is_finite() && r > 0.0)
+            {
+                return Err(bad("range", format!("{r:?} must be finite and positive")));
+            }
+            if let LightKind::Spot { inner, outer } = l.kind {
+                if !(outer > 0.0 && outer <= std::f32::consts::FRAC_PI_2) {
+                    return Err(bad(
+                        "spot.outerConeAngle",
+                        format!("{outer:?} must be in (0, π/2] radians"),
+                    ));
+                }
+                if outer.cos() >= 1.0 {
+                    return Err(bad(
+                        "spot.outerConeAngle",
+                        format!(
+                            "{outer:?} radians is a cone too narrow to light anything: its cosine rounds to 1 in f32"
+                        ),
+                    ));
+                }
+                if !(inner >= 0.0 && inner < outer) {
+                    return Err(bad(
+                        "spot.innerConeAngle",
+                        format!("{inner:?} must be in [0, outerConeAngle = {outer:?}) radians"),
+                    ));
+                }
             }
         }
         Ok(lights)
@@ -1229,7 +1359,9 @@ fn urlencoding_decode(uri: &str) -> String {
 }
 
 /// Checks that every accessor's elements lie inside its buffer view and every view inside its
-/// buffer's data, so that reading can never go out of bounds.
+/// buffer's data, so that reading can never go out of bounds, and that a sparse accessor's
+/// indices are strictly increasing and below its count (glTF 2.0 §3.6.2.3), so that none of
+/// its values is dropped.
 fn check_accessors(
     path: &Path,
     doc: &gltf::Document,
@@ -1275,6 +1407,74 @@ fn check_accessors(
                 ),
             ));
         }
+    }
+    for a in doc.accessors() {
+        if let Some(s) = a.sparse() {
+            check_sparse_indices(path, &a, &s, buffers)?;
+        }
+    }
+    Ok(())
+}
+
+/// Checks that the sparse `indices` of accessor `a` are strictly increasing and below its
+/// count (glTF 2.0 §3.6.2.3). [`super::validate`] has checked that they fit their buffer view
+/// and that the view has no `byteStride`; [`check_accessors`], that the view fits its buffer.
+fn check_sparse_indices(
+    path: &Path,
+    a: &gltf::Accessor<'_>,
+    s: &gltf::accessor::sparse::Sparse<'_>,
+    buffers: &[gltf::buffer::Data],
+) -> Result<()> {
+    use gltf::accessor::sparse::IndexType;
+    let at = format!(
+        "{}.sparse.indices",
+        name_of("accessors", a.index(), a.name())
+    );
+    let indices = s.indices();
+    let size = match indices.index_type() {
+        IndexType::U8 => 1,
+        IndexType::U16 => 2,
+        IndexType::U32 => 4,
+    };
+    let view = indices.view();
+    let bytes = view
+        .offset()
+        .checked_add(indices.offset())
+        .and_then(|start| Some((start, start.checked_add(s.count().checked_mul(size)?)?)))
+        .and_then(|(start, end)| buffers[view.buffer().index()].0.get(start..end))
+        .ok_or_else(|| {
+            Error::input(
+                path,
+                &at,
+                format!("{} indices do not fit their buffer view", s.count()),
+            )
+        })?;
+    let mut previous: Option<u32> = None;
+    for (k, b) in bytes.chunks_exact(size).enumerate() {
+        // Little-endian, of 1, 2 or 4 bytes.
+        let i = b.iter().rev().fold(0u32, |i, &x| (i << 8) | x as u32);
+        if i as usize >= a.count() {
+            return Err(Error::input(
+                path,
+                &at,
+                format!(
+                    "index {k} is {i}, outside the accessor's {} elements",
+                    a.count()
+                ),
+            ));
+        }
+        if let Some(p) = previous
+            && i <= p
+        {
+            return Err(Error::input(
+                path,
+                &at,
+                format!(
+                    "index {k} is {i}, not above the one before it ({p}); sparse indices must strictly increase"
+                ),
+            ));
+        }
+        previous = Some(i);
     }
     Ok(())
 }

@@ -7,8 +7,9 @@
 //! [`Error::Input`] naming the element (`meshes[3].primitives[0].attributes.NORMAL`,
 //! `animations[1].channels[4].target.node`, `accessors[2].count`), every index out of range,
 //! every component type or element type a semantic does not allow, every count that does not
-//! fit its buffer view and buffer (in overflow-free `u64` arithmetic), and a node graph that
-//! is not a forest. Only then is the document handed to the crate.
+//! fit its buffer view and buffer (in overflow-free `u64` arithmetic), every `byteStride`
+//! shorter than the elements it strides (the crate asserts on one), and a node graph that is
+//! not a forest. Only then is the document handed to the crate.
 
 use std::path::Path;
 
@@ -107,7 +108,8 @@ impl V<'_> {
         Ok(())
     }
 
-    /// Buffer views (glTF 2.0 §3.6.2): the buffer exists and the bytes lie inside it.
+    /// Buffer views (glTF 2.0 §3.6.2): the buffer exists and the bytes lie inside it; a
+    /// `byteStride` is a multiple of 4 in 4..=252 (§3.6.2.4, §5.11.4).
     fn views(&self) -> Result<()> {
         let buffers = &self.root.buffers;
         for (i, v) in self.root.buffer_views.iter().enumerate() {
@@ -131,16 +133,21 @@ impl V<'_> {
                 ));
             }
             if let Some(s) = v.byte_stride
-                && !(4..=252).contains(&s.0)
+                && !((4..=252).contains(&s.0) && s.0 % 4 == 0)
             {
-                return Err(self.bad(format!("{at}.byteStride"), "must be in 4..=252"));
+                return Err(self.bad(
+                    format!("{at}.byteStride"),
+                    format!("{} must be a multiple of 4 in 4..=252", s.0),
+                ));
             }
         }
         Ok(())
     }
 
-    /// Accessors (glTF 2.0 §3.6.2, §3.6.2.3): valid types, elements inside the buffer view,
-    /// sparse storage inside its views, and no more zero elements than can be allocated.
+    /// Accessors (glTF 2.0 §3.6.2, §3.6.2.3): valid types, elements no longer than their
+    /// view's `byteStride` and inside the view, sparse storage inside views without a
+    /// `byteStride` (§5.3, §5.4: it is tightly packed), and no more zero elements than can be
+    /// allocated.
     fn accessors(&self) -> Result<()> {
         let views = &self.root.buffer_views;
         for (i, a) in self.root.accessors.iter().enumerate() {
@@ -165,7 +172,20 @@ impl V<'_> {
                     "bufferViews",
                 )?;
                 let v = &views[view.value()];
-                let stride = v.byte_stride.map_or(elem, |s| s.0 as u64).max(elem);
+                if let Some(s) = v.byte_stride
+                    && (s.0 as u64) < elem
+                {
+                    return Err(self.bad(
+                        format!("bufferViews[{}].byteStride", view.value()),
+                        format!(
+                            "{} bytes is less than the {elem}-byte elements ({} {}) of {at}, which uses the view",
+                            s.0,
+                            component_name(ct),
+                            type_name(ty)
+                        ),
+                    ));
+                }
+                let stride = v.byte_stride.map_or(elem, |s| s.0 as u64);
                 let off = a.byte_offset.map_or(0, |o| o.0);
                 let need = if count == 0 {
                     Some(0)
@@ -228,6 +248,14 @@ impl V<'_> {
                         views.len(),
                         "bufferViews",
                     )?;
+                    if views[view.value()].byte_stride.is_some() {
+                        return Err(self.bad(
+                            format!("bufferViews[{}].byteStride", view.value()),
+                            format!(
+                                "must not be defined: {kat} uses the view, and sparse {key} are tightly packed"
+                            ),
+                        ));
+                    }
                     let len = views[view.value()].byte_length.0;
                     if n.checked_mul(size)
                         .and_then(|b| b.checked_add(off))
@@ -572,8 +600,8 @@ impl V<'_> {
         Ok(())
     }
 
-    /// Skins (glTF 2.0 §3.7.3): joints and skeleton exist; inverse bind matrices are float
-    /// MAT4, one per joint.
+    /// Skins (glTF 2.0 §3.7.3): at least one joint (the schema's `minItems`), joints and
+    /// skeleton exist; inverse bind matrices are float MAT4, one per joint.
     fn skins(&self) -> Result<()> {
         let n = self.root.nodes.len();
         let mat4 = Want {
@@ -584,6 +612,9 @@ impl V<'_> {
         };
         for (i, s) in self.root.skins.iter().enumerate() {
             let at = format!("skins[{i}]");
+            if s.joints.is_empty() {
+                return Err(self.bad(format!("{at}.joints"), "must name at least one node"));
+            }
             for (k, j) in s.joints.iter().enumerate() {
                 self.index(&format!("{at}.joints[{k}]"), j.value(), n, "nodes")?;
             }

@@ -2,7 +2,10 @@
 //! read, and refused with exit 2 naming the file and the element; the fuzzer's crashers stay
 //! fixed, and a short in-process fuzz finds no panic.
 
+use std::io::Read;
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 
@@ -434,5 +437,279 @@ fn sparse_storage_must_fit_its_buffer_views() {
             });
         },
         &["accessors[1].sparse.count", "sparse indices"],
+    );
+}
+
+#[test]
+fn a_byte_stride_shorter_than_an_element_is_refused_naming_the_view_and_the_accessor() {
+    // Three 12-byte positions 8 bytes apart fit the 36-byte view; reading them panicked.
+    refused_after(
+        |d| d["bufferViews"][0]["byteStride"] = json!(8),
+        &["bufferViews[0].byteStride", "accessors[0]", "12-byte"],
+    );
+    // The JSON schema's byteStride is a multiple of 4 (view 5 is used by no accessor).
+    refused_after(
+        |d| d["bufferViews"][5]["byteStride"] = json!(6),
+        &["bufferViews[5].byteStride", "multiple of 4"],
+    );
+}
+
+/// `triangle()` lit by `light`, the only `KHR_lights_punctual` light, on node 1.
+fn lit(light: Value) -> impl FnOnce(&mut Value) {
+    move |d| {
+        d["extensionsUsed"] = json!(["KHR_lights_punctual"]);
+        d["extensions"] = json!({"KHR_lights_punctual": {"lights": [light]}});
+        d["nodes"][1]["extensions"] = json!({"KHR_lights_punctual": {"light": 0}});
+    }
+}
+
+#[test]
+fn a_light_colour_must_be_finite_and_non_negative() {
+    let dir = tempdir();
+    let mut doc = triangle();
+    lit(json!({"type": "point", "intensity": 20, "color": [1, 0.5, 0.25]}))(&mut doc);
+    let (code, err) = inspect(&write(dir.path(), &doc));
+    assert_eq!(code, Some(0), "{err}");
+    refused_after(
+        lit(json!({"type": "point", "intensity": 20, "color": [1, 1, -1]})),
+        &["extensions.KHR_lights_punctual.lights[0].color", "-1"],
+    );
+    // 1e39 is beyond f32 and reads as infinity.
+    refused_after(
+        lit(json!({"type": "point", "intensity": 20, "color": [1e39, 1, 1]})),
+        &["extensions.KHR_lights_punctual.lights[0].color"],
+    );
+}
+
+#[test]
+fn a_light_whose_colour_times_intensity_overflows_f32_is_refused() {
+    refused_after(
+        lit(json!({"type": "point", "intensity": 20, "color": [1e38, 1, 1], "name": "sun"})),
+        &[
+            "extensions.KHR_lights_punctual.lights[0] \"sun\"",
+            "colour × intensity overflows f32",
+        ],
+    );
+    // 2e38 is finite; the point light's power, 4π times it, is not.
+    refused_after(
+        lit(json!({"type": "point", "intensity": 20, "color": [1e37, 1, 1]})),
+        &["extensions.KHR_lights_punctual.lights[0]", "4π"],
+    );
+}
+
+#[test]
+fn spot_cone_angles_must_satisfy_0_le_inner_lt_outer_le_half_pi() {
+    let spot = |inner: f64, outer: f64| {
+        json!({"type": "spot", "intensity": 20,
+               "spot": {"innerConeAngle": inner, "outerConeAngle": outer}})
+    };
+    let dir = tempdir();
+    let mut doc = triangle();
+    lit(spot(0.0, std::f64::consts::FRAC_PI_2))(&mut doc);
+    let (code, err) = inspect(&write(dir.path(), &doc));
+    assert_eq!(code, Some(0), "{err}");
+    let key = "extensions.KHR_lights_punctual.lights[0].spot";
+    for (inner, outer, at) in [
+        (0.0, 0.0, "outerConeAngle"),
+        (0.0, 1e-30, "outerConeAngle"),
+        (0.0, 2.0, "outerConeAngle"),
+        (0.6, 0.3, "innerConeAngle"),
+        (0.3, 0.3, "innerConeAngle"),
+        (-0.1, 0.3, "innerConeAngle"),
+    ] {
+        refused_after(lit(spot(inner, outer)), &[&format!("{key}.{at}")]);
+    }
+    refused_after(
+        lit(json!({"type": "point", "range": -1})),
+        &["extensions.KHR_lights_punctual.lights[0].range"],
+    );
+}
+
+/// Appends `item` to the JSON array `array`.
+fn push(array: &mut Value, item: Value) {
+    array.as_array_mut().expect("a JSON array").push(item);
+}
+
+/// `triangle()` with the normals (accessor 1) replaced at the `sparse` indices, stored as
+/// UNSIGNED_INT in `sparse.bin` beside it and followed by one normal per index.
+fn sparse_normals(indices: &[u32], stride: Option<u32>) -> (TempDir, PathBuf) {
+    let dir = tempdir();
+    let n = indices.len();
+    let mut bin: Vec<u8> = indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+    for _ in 0..n {
+        bin.extend([0f32, 1., 0.].iter().flat_map(|x| x.to_le_bytes()));
+    }
+    std::fs::write(dir.path().join("sparse.bin"), &bin).unwrap();
+    let mut doc = triangle();
+    push(
+        &mut doc["buffers"],
+        json!({"byteLength": bin.len(), "uri": "sparse.bin"}),
+    );
+    let mut view = json!({"buffer": 1, "byteOffset": 0, "byteLength": 4 * n});
+    if let Some(s) = stride {
+        view["byteStride"] = json!(s);
+    }
+    push(&mut doc["bufferViews"], view);
+    push(
+        &mut doc["bufferViews"],
+        json!({"buffer": 1, "byteOffset": 4 * n, "byteLength": 12 * n}),
+    );
+    doc["accessors"][1]["sparse"] = json!({
+        "count": n,
+        "indices": {"bufferView": 6, "componentType": 5125},
+        "values": {"bufferView": 7}
+    });
+    let path = write(dir.path(), &doc);
+    (dir, path)
+}
+
+#[test]
+fn sparse_indices_must_strictly_increase_below_the_count() {
+    let (_dir, path) = sparse_normals(&[0, 2], None);
+    let (code, err) = inspect(&path);
+    assert_eq!(code, Some(0), "{err}");
+    for (indices, what) in [
+        (&[0, 3][..], "3, outside"),
+        (&[1, 1][..], "strictly increase"),
+        (&[2, 1][..], "strictly increase"),
+    ] {
+        let (_dir, path) = sparse_normals(indices, None);
+        assert_refused(&path, &["accessors[1].sparse.indices", what]);
+    }
+    // Sparse storage is tightly packed: its views have no byteStride.
+    let (_dir, path) = sparse_normals(&[0, 2], Some(4));
+    assert_refused(&path, &["bufferViews[6].byteStride", "sparse.indices"]);
+}
+
+/// `triangle()` skinned by `skins[0]` (joint nodes[1]) on node 0, with the per-vertex
+/// `joints` (UNSIGNED_BYTE VEC4), `weights` (FLOAT VEC4) and one inverse bind matrix `ibm`
+/// in `skin.bin` beside it, and `edit` applied.
+fn skinned(
+    joints: [u8; 12],
+    weights: [f32; 12],
+    ibm: [f32; 16],
+    edit: impl FnOnce(&mut Value),
+) -> (TempDir, PathBuf) {
+    let dir = tempdir();
+    let mut bin = joints.to_vec();
+    bin.extend(weights.iter().chain(&ibm).flat_map(|x| x.to_le_bytes()));
+    std::fs::write(dir.path().join("skin.bin"), &bin).unwrap();
+    let mut doc = triangle();
+    push(
+        &mut doc["buffers"],
+        json!({"byteLength": 124, "uri": "skin.bin"}),
+    );
+    // Views 6, 7, 8 and accessors 5, 6, 7: joints, weights, inverse bind matrix.
+    for (view, (off, len, ct, count, ty)) in [
+        (0, 12, 5121, 3, "VEC4"),
+        (12, 48, 5126, 3, "VEC4"),
+        (60, 64, 5126, 1, "MAT4"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        push(
+            &mut doc["bufferViews"],
+            json!({"buffer": 1, "byteOffset": off, "byteLength": len}),
+        );
+        push(
+            &mut doc["accessors"],
+            json!({"bufferView": 6 + view, "componentType": ct, "count": count, "type": ty}),
+        );
+    }
+    let attributes = &mut doc["meshes"][0]["primitives"][0]["attributes"];
+    attributes["JOINTS_0"] = json!(5);
+    attributes["WEIGHTS_0"] = json!(6);
+    doc["skins"] = json!([{"joints": [1], "inverseBindMatrices": 7}]);
+    doc["nodes"][0]["skin"] = json!(0);
+    edit(&mut doc);
+    let path = write(dir.path(), &doc);
+    (dir, path)
+}
+
+const ONE_JOINT: [f32; 12] = [1., 0., 0., 0., 1., 0., 0., 0., 1., 0., 0., 0.];
+const IDENTITY: [f32; 16] = [
+    1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.,
+];
+
+#[test]
+fn skin_joints_weights_and_inverse_bind_matrices_are_checked() {
+    let (_dir, path) = skinned([0; 12], ONE_JOINT, IDENTITY, |_| {});
+    let (code, err) = inspect(&path);
+    assert_eq!(code, Some(0), "{err}");
+    // Vertex 1 bound to joint 1 of a one-joint skin.
+    let mut joints = [0; 12];
+    joints[4] = 1;
+    let (_dir, path) = skinned(joints, ONE_JOINT, IDENTITY, |_| {});
+    assert_refused(
+        &path,
+        &[
+            "meshes[0].primitives[0].attributes.JOINTS_0",
+            "vertex 1 names joint 1",
+            "skins[0]",
+            "nodes[0]",
+        ],
+    );
+    let (_dir, path) = skinned([0; 12], ONE_JOINT, IDENTITY, |d| {
+        d["skins"][0]["joints"] = json!([]);
+    });
+    assert_refused(&path, &["skins[0].joints", "at least one"]);
+    let mut ibm = IDENTITY;
+    ibm[5] = f32::NAN;
+    let (_dir, path) = skinned([0; 12], ONE_JOINT, ibm, |_| {});
+    assert_refused(&path, &["skins[0].inverseBindMatrices", "not finite"]);
+    let mut weights = ONE_JOINT;
+    weights[8] = f32::INFINITY;
+    let (_dir, path) = skinned([0; 12], weights, IDENTITY, |_| {});
+    assert_refused(
+        &path,
+        &[
+            "meshes[0].primitives[0].attributes.WEIGHTS_0",
+            "vertex 2",
+            "not finite",
+        ],
+    );
+}
+
+#[test]
+fn a_fifo_is_refused_at_once_as_not_a_regular_file() {
+    let dir = tempdir();
+    let fifo = dir.path().join("fifo.gltf");
+    let made = Command::new("mkfifo").arg(&fifo).status();
+    if !made.is_ok_and(|s| s.success()) {
+        eprintln!("skipped: mkfifo is not available");
+        return;
+    }
+    let mut child = bin()
+        .arg("inspect")
+        .arg(&fifo)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run anchorage");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break Some(s);
+        }
+        if start.elapsed() > Duration::from_secs(20) {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let status = status.expect("anchorage still waited on the FIFO after 20 s");
+    assert_eq!(status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("fifo.gltf") && err.contains("not a regular file"),
+        "{err}"
     );
 }
