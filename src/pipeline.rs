@@ -317,22 +317,13 @@ pub fn write_frame(
 /// Renders every frame of the job and writes EXR, stats JSON and (optionally) PNG per frame.
 /// The output directory is checked before the first frame renders.
 pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<FrameStats>> {
-    output::check_output_dir(&job.out_dir)?;
-    // The static set's time is the stats' `static_bvh`; the adapter probe is not in it.
-    let start = Instant::now();
-    let statics = scene.statics();
-    let static_time = start.elapsed().as_secs_f64();
-    let resources = with_statics(job, statics)?;
     let so = &opts.state;
     let hash = match (&so.resume, &so.out) {
         (None, None) => None,
         _ => Some(checkpoint::job_hash(job, scene)?),
     };
-    if let Some(dir) = &so.out {
-        output::check_output_dir(dir)?;
-    }
-    let mut state = FrameState::default();
-    let first = match (&so.resume, hash) {
+    // The state to resume from is read, and refused, before any directory is made.
+    let resumed = match (&so.resume, hash) {
         (Some(path), Some(hash)) => {
             let p = job.method.params();
             let strata = (p.cache.strata[0] * p.cache.strata[1]) as usize;
@@ -349,10 +340,22 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
                     ),
                 ));
             }
-            state = resumed;
-            job.frames.start
+            Some(resumed)
         }
-        _ => first_frame(job, scene, so.warmup),
+        _ => None,
+    };
+    output::check_output_dir(&job.out_dir)?;
+    if let Some(dir) = &so.out {
+        output::check_output_dir(dir)?;
+    }
+    // The static set's time is the stats' `static_bvh`; the adapter probe is not in it.
+    let start = Instant::now();
+    let statics = scene.statics();
+    let static_time = start.elapsed().as_secs_f64();
+    let resources = with_statics(job, statics)?;
+    let (mut state, first) = match resumed {
+        Some(state) => (state, job.frames.start),
+        None => (FrameState::default(), first_frame(job, scene, so.warmup)),
     };
     let frames: Vec<i32> = (first..=job.frames.end).collect();
     let bar = (opts.progress == Progress::Auto && std::io::stderr().is_terminal()).then(|| {
