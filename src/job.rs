@@ -155,28 +155,56 @@ impl TransformFile {
 }
 
 /// Camera given in the job file.
-#[derive(Debug, Clone, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields, untagged)]
+#[derive(Debug, Clone, JsonSchema)]
+#[serde(untagged)]
 pub enum CameraFile {
     /// A glTF camera node by name (searched in layer order).
-    Node { node: String },
+    Node(NodeCamera),
     /// A pinhole camera.
-    LookAt {
-        position: [f64; 3],
-        look_at: [f64; 3],
-        #[serde(default = "default_up")]
-        up: [f32; 3],
-        /// Vertical field of view in degrees, in (0, 180).
-        #[schemars(extend("exclusiveMinimum" = 0, "exclusiveMaximum" = 180))]
-        yfov_deg: f32,
-        /// Camera rays see nothing nearer than this depth along the view axis. Default 0.
-        #[serde(default)]
-        #[schemars(range(min = 0))]
-        znear: f32,
-        /// ... nor farther than this one. Default: no far plane.
-        #[serde(default)]
-        zfar: Option<f32>,
-    },
+    LookAt(LookAtCamera),
+}
+
+/// [`CameraFile::Node`]: the name of a glTF camera node.
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct NodeCamera {
+    pub node: String,
+}
+
+/// [`CameraFile::LookAt`]: a pinhole camera placed by the job.
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LookAtCamera {
+    pub position: [f64; 3],
+    pub look_at: [f64; 3],
+    #[serde(default = "default_up")]
+    pub up: [f32; 3],
+    /// Vertical field of view in degrees, in (0, 180).
+    #[schemars(extend("exclusiveMinimum" = 0, "exclusiveMaximum" = 180))]
+    pub yfov_deg: f32,
+    /// Camera rays see nothing nearer than this depth along the view axis. Default 0.
+    #[serde(default)]
+    #[schemars(range(min = 0))]
+    pub znear: f32,
+    /// ... nor farther than this one. Default: no far plane.
+    #[serde(default)]
+    pub zfar: Option<f32>,
+}
+
+impl<'de> Deserialize<'de> for CameraFile {
+    /// A camera with a `node` key names a node, any other is a look-at camera: deciding by
+    /// the key, rather than trying each in turn, lets an error name the key at fault (a
+    /// missing `yfov_deg`, an unknown `fov`) instead of saying that no kind matched.
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::Error as _;
+        let v = serde_json::Value::deserialize(d)?;
+        let camera = if v.get("node").is_some() {
+            NodeCamera::deserialize(v).map(CameraFile::Node)
+        } else {
+            LookAtCamera::deserialize(v).map(CameraFile::LookAt)
+        };
+        camera.map_err(|e| D::Error::custom(format!("camera: {e}")))
+    }
 }
 
 fn default_up() -> [f32; 3] {
@@ -794,15 +822,15 @@ fn layers(path: &Path, base: &Path, scene: &[LayerFile]) -> Result<Vec<LayerDesc
 /// The job's camera, checked: a node name, or a pinhole camera that can look somewhere.
 fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
     let (position, look_at, up, yfov_deg, znear, zfar) = match c {
-        CameraFile::Node { node } => return Ok(CameraSpec::Node(node)),
-        CameraFile::LookAt {
+        CameraFile::Node(NodeCamera { node }) => return Ok(CameraSpec::Node(node)),
+        CameraFile::LookAt(LookAtCamera {
             position,
             look_at,
             up,
             yfov_deg,
             znear,
             zfar,
-        } => (
+        }) => (
             DVec3::from(position),
             DVec3::from(look_at),
             Vec3::from(up),
@@ -828,6 +856,13 @@ fn camera(path: &Path, c: CameraFile) -> Result<CameraSpec> {
             path,
             "camera",
             "position and look_at must differ",
+        ));
+    }
+    if !(look_at - position).length().is_finite() {
+        return Err(Error::input(
+            path,
+            "camera.position",
+            "lies too far from look_at: their distance overflows",
         ));
     }
     if (look_at - position)

@@ -416,3 +416,46 @@ fn the_gpu_probe_prints_no_error_lines() {
     let e = stderr(&o);
     assert!(!e.contains("error"), "{e}");
 }
+
+/// A job's camera that is wrong says which key is at fault: a look-at camera's missing or
+/// unknown key, a node camera's stray key, a position too far away to subtract.
+#[test]
+fn a_job_camera_error_names_the_key() {
+    let dir = tempdir();
+    let room = root().join("examples/room/room.gltf");
+    let job = |camera: &str| {
+        let p = dir.path().join("job.json");
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"scene":[{{"path":"{}"}}],"camera":{camera},"output":{{"directory":"out"}}}}"#,
+                room.display()
+            ),
+        )
+        .unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    for (camera, needle) in [
+        (
+            r#"{"position":[0,1,5],"look_at":[0,1,0]}"#,
+            "missing field `yfov_deg`",
+        ),
+        (
+            r#"{"position":[0,1,5],"look_at":[0,1,0],"yfov_deg":40,"fov":40}"#,
+            "unknown field `fov`",
+        ),
+        (
+            r#"{"node":"Camera","yfov_deg":40}"#,
+            "unknown field `yfov_deg`",
+        ),
+        (
+            r#"{"position":[1e300,1,5],"look_at":[0,1,0],"yfov_deg":40}"#,
+            "camera.position",
+        ),
+    ] {
+        let o = run(&["validate", &job(camera)]);
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{camera}: {e}");
+        assert!(e.contains(needle), "{camera}: {e}");
+    }
+}
