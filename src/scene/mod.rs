@@ -1108,6 +1108,18 @@ fn camera_node(layers: &[Layer], name: &str, file: &Path) -> Result<CameraChoice
                     return Err(bad(e));
                 }
             }
+            // A camera node outside its file's scene lost its camera ([`Layer::keep_scene`]).
+            for l in layers {
+                if let Ok(ni) = l.find_node(name, |_| true)
+                    && !l.in_scene()[ni]
+                {
+                    return Err(bad(format!(
+                        "nodes[{ni}] \"{name}\" of {} lies outside the file's scene (its \
+                         `scene`, else scenes[0]), whose cameras are not used",
+                        l.path.display()
+                    )));
+                }
+            }
             Err(bad(format!("no camera node named \"{name}\" in the scene")))
         }
         _ => {

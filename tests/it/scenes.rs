@@ -455,6 +455,19 @@ fn only_the_nodes_of_the_default_scene_are_rendered() {
             && warnings.contains("\"lamp_out\""),
         "{warnings}"
     );
+    // A job naming a camera node outside the scene is told so.
+    let e = job_from_json(
+        &dir.path().join("j.json"),
+        r#"{"scene":[{"path":"two.gltf"}],"camera":{"node":"cam_out"}}"#,
+    )
+    .unwrap()
+    .load_scene()
+    .expect_err("cam_out is outside the scene")
+    .to_string();
+    assert!(
+        e.contains("camera.node") && e.contains("outside the file's scene"),
+        "{e}"
+    );
     let all = load("none.gltf", "");
     let triangles = all.geometry(t, Motion::Static).len() + all.geometry(t, Motion::Dynamic).len();
     assert_eq!(
