@@ -737,6 +737,7 @@ impl Job {
             }
         }
         scene.check_camera((self.frames.start..=self.frames.end).map(|f| (f, self.time_of(f))))?;
+        crate::output::protect_inputs(std::iter::once(self.path.as_path()).chain(scene.files()));
         Ok(scene)
     }
 

@@ -366,6 +366,9 @@ fn run(cli: Cli) -> Result<(), Error> {
             let plan = compare::Plan::new(&flags, &job)?;
             let scene = job.load_scene()?;
             anchorage::budget::check(&job, &scene, None)?;
+            anchorage::output::refuse_inputs(
+                ["compare.json", "compare.png", "compare.svg"].map(|f| job.out_dir.join(f)),
+            )?;
             anchorage::output::check_output_dir(&job.out_dir)?;
             let report = compare::run(&job, &scene, &plan)?;
             print!("{}", compare::table(&report));
@@ -504,7 +507,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 eprintln!("anchorage: warning: {w}");
             }
             anchorage::budget::check(&job, &scene, None)?;
-            anchorage::output::check_output_dir(&job.out_dir)?;
+            anchorage::output::check_output_dir_unmade(&job.out_dir)?;
             println!(
                 "{}: ok: {} layer(s), frames {}..{}, {}x{}",
                 job.path.display(),

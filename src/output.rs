@@ -7,7 +7,8 @@
 //! into place. A frame's files are renamed together ([`commit`]), the EXR last, and removed
 //! again if any rename fails: a frame is its EXR and its stats, or nothing. Temporary files
 //! not yet renamed are listed so that SIGINT/SIGTERM can remove them before exiting
-//! ([`install_signal_cleanup`]).
+//! ([`install_signal_cleanup`]), which waits for a set being renamed to be whole. No output
+//! replaces a file the run reads ([`protect_inputs`]).
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -25,6 +26,51 @@ static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
 fn pending() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
     PENDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Held while [`commit`] renames a set of files into place, and by the signal thread before
+/// it removes the temporary files and exits: a signal that arrives mid-commit waits for the
+/// set to be whole (a rename takes microseconds), rather than leaving a frame's stats
+/// renamed without its EXR.
+static COMMITTING: Mutex<()> = Mutex::new(());
+
+/// The files this process reads as input (the job, its scenes' glTF, buffers and images):
+/// [`commit`] renames nothing over one of them, by any name.
+static INPUTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// Makes `files` the inputs no output may replace ([`commit`]), in place of those of an
+/// earlier load (watch mode loads the job again after each edit).
+pub fn protect_inputs<'a>(files: impl IntoIterator<Item = &'a Path>) {
+    let mut inputs = INPUTS.lock().unwrap_or_else(|e| e.into_inner());
+    *inputs = files.into_iter().map(Path::to_path_buf).collect();
+}
+
+/// Refuses `paths` as outputs, before anything is written, if one names an input
+/// ([`protect_inputs`]).
+pub fn refuse_inputs<P: AsRef<Path>>(paths: impl IntoIterator<Item = P>) -> Result<()> {
+    paths.into_iter().try_for_each(|p| refuse_input(p.as_ref()))
+}
+
+/// Refuses `path` as an output if it is one of the inputs ([`protect_inputs`]): the same
+/// file (device and inode) as an input's path is now, so that an input replaced since its
+/// load, whose inode a new file may take, is not mistaken for its old self.
+fn refuse_input(path: &Path) -> Result<()> {
+    use std::os::unix::fs::MetadataExt;
+    let Ok(m) = std::fs::metadata(path) else {
+        return Ok(());
+    };
+    let inputs = INPUTS.lock().unwrap_or_else(|e| e.into_inner());
+    let same =
+        |p: &PathBuf| std::fs::metadata(p).is_ok_and(|i| (i.dev(), i.ino()) == (m.dev(), m.ino()));
+    if inputs.iter().any(same) {
+        return Err(Error::input(
+            path,
+            "output",
+            "is a file this run reads (the job, or a file of its scene): writing the output \
+             would replace it; choose another output directory or name",
+        ));
+    }
+    Ok(())
 }
 
 /// A file written under a temporary name beside `path`, waiting to be renamed to it.
@@ -94,6 +140,10 @@ pub fn stage(
 /// Renames staged files into place in order; if one fails, those already renamed are
 /// removed again, so the set appears whole or not at all.
 pub fn commit(files: Vec<Staged>) -> Result<()> {
+    for f in &files {
+        refuse_input(&f.path)?;
+    }
+    let _committing = COMMITTING.lock().unwrap_or_else(|e| e.into_inner());
     let mut done: Vec<PathBuf> = Vec::new();
     for mut f in files {
         let Some(tmp) = f.tmp.take() else { continue };
@@ -134,6 +184,8 @@ pub fn install_signal_cleanup() -> Result<()> {
         .name("signals".into())
         .spawn(move || {
             if let Some(sig) = signals.forever().next() {
+                // Never released: the process exits below.
+                let _committing = COMMITTING.lock().unwrap_or_else(|e| e.into_inner());
                 for p in pending().drain(..) {
                     let _ = std::fs::remove_file(p);
                 }
@@ -142,6 +194,31 @@ pub fn install_signal_cleanup() -> Result<()> {
             }
         })
         .map_err(|e| Error::Render(format!("cannot start the signal thread: {e}")))?;
+    Ok(())
+}
+
+/// Checks, creating nothing, that `dir` is a directory or can become one: each part of its
+/// path that exists is a directory (`validate`, and a render's directories all checked
+/// before any is made). Whether it accepts files is known only once it exists
+/// ([`check_output_dir`]).
+pub fn check_output_dir_unmade(dir: &Path) -> Result<()> {
+    let fail = |at: &Path, m: &str| Error::Output {
+        path: dir.to_path_buf(),
+        message: if at == dir {
+            m.to_string()
+        } else {
+            format!("{}: {m}", at.display())
+        },
+    };
+    let mut at = Some(dir);
+    while let Some(p) = at.filter(|p| !p.as_os_str().is_empty()) {
+        match std::fs::metadata(p) {
+            Ok(m) if m.is_dir() => return Ok(()),
+            Ok(_) => return Err(fail(p, "is not a directory")),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => at = p.parent(),
+            Err(e) => return Err(fail(p, &format!("cannot be read: {e}"))),
+        }
+    }
     Ok(())
 }
 

@@ -322,6 +322,19 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         (None, None) => None,
         _ => Some(checkpoint::job_hash(job, scene)?),
     };
+    // No frame's files, nor a state written, may replace an input.
+    let exts: &[&str] = if opts.preview {
+        &["exr", "json", "png"]
+    } else {
+        &["exr", "json"]
+    };
+    output::refuse_inputs(
+        (job.frames.start..=job.frames.end)
+            .flat_map(|f| exts.iter().map(move |e| job.frame_path(f, e)))
+            .chain(so.out.iter().flat_map(|d| {
+                (job.frames.start..=job.frames.end).map(|f| checkpoint::state_path(d, job, f))
+            })),
+    )?;
     // The state to resume from is read, and refused, before any directory is made.
     let resumed = match (&so.resume, hash) {
         (Some(path), Some(hash)) => {
@@ -344,6 +357,11 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         }
         _ => None,
     };
+    // Every directory checked before any is made.
+    output::check_output_dir_unmade(&job.out_dir)?;
+    if let Some(dir) = &so.out {
+        output::check_output_dir_unmade(dir)?;
+    }
     output::check_output_dir(&job.out_dir)?;
     if let Some(dir) = &so.out {
         output::check_output_dir(dir)?;

@@ -459,3 +459,77 @@ fn a_job_camera_error_names_the_key() {
         assert!(e.contains(needle), "{camera}: {e}");
     }
 }
+
+/// No output replaces an input: a job whose name is one of its own frames' stats, or a
+/// `compare` job written where its table goes, is refused before anything renders. A
+/// directory that cannot be made is found before any other is made, and `validate` makes
+/// none.
+#[test]
+fn outputs_never_replace_inputs_and_refusals_make_no_directories() {
+    let dir = tempdir();
+    let d = dir.path();
+    std::fs::copy(root().join("examples/room/room.gltf"), d.join("room.gltf")).unwrap();
+    let write = |name: &str, extra: &str| {
+        let p = d.join(name);
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"scene":[{{"path":"room.gltf"}}],"resolution":[16,12],"frames":{{"start":20,"end":20}},
+                "method":{{"name":"direct"}}{extra}}}"#
+            ),
+        )
+        .unwrap();
+        (p.to_str().unwrap().to_string(), std::fs::read(&p).unwrap())
+    };
+    let (framed, before) = write(
+        "room.0020.json",
+        r#","output":{"directory":".","name":"room"}"#,
+    );
+    let o = run(&["render", &framed, "-q"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("a file this run reads"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(
+        std::fs::read(&framed).unwrap(),
+        before,
+        "the job was replaced"
+    );
+    assert!(!d.join("room.0020.exr").exists());
+    let (compare, before) = write("compare.json", "");
+    let out = d.to_str().unwrap();
+    let o = run(&[
+        "compare",
+        &compare,
+        "--methods",
+        "direct",
+        "--reference",
+        "direct",
+        "--out",
+        out,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(&compare).unwrap(),
+        before,
+        "the job was replaced"
+    );
+    // A state directory that is a file: refused before the output directory is made.
+    let (job, _) = write("job.json", r#","output":{"directory":"out/a"}"#);
+    std::fs::write(d.join("afile"), "x").unwrap();
+    let afile = d.join("afile");
+    let o = run(&["render", &job, "-q", "--state-out", afile.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        !d.join("out").exists(),
+        "a refused render made its output directory"
+    );
+    let o = run(&["validate", &job]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        !d.join("out").exists(),
+        "validate made the output directory"
+    );
+}
