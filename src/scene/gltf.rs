@@ -190,6 +190,16 @@ fn crate_validation(path: &Path, gltf: &gltf::Gltf) -> Result<()> {
     }
 }
 
+/// Why `file`, which is not a regular file, cannot be read: it is missing, or it is
+/// something else (a FIFO, a device, a directory).
+fn missing(file: &Path) -> &'static str {
+    if file.exists() {
+        "is not a regular file"
+    } else {
+        "not found"
+    }
+}
+
 /// The largest `.gltf` (JSON) file read: 256 MiB.
 pub const MAX_GLTF_BYTES: u64 = 256 << 20;
 /// The largest `.glb` file read: a GLB's length is a `u32` (glTF 2.0 §4.4.2).
@@ -293,7 +303,7 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<Vec<Pat
                 return Err(Error::input(
                     path,
                     name_of("buffers", b.index(), b.name()),
-                    format!("buffer file {} not found", file.display()),
+                    format!("buffer file {} {}", file.display(), missing(&file)),
                 ));
             }
             files.push(file);
@@ -309,7 +319,7 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<Vec<Pat
                 return Err(Error::input(
                     path,
                     at,
-                    format!("image file {} not found", base.join(uri).display()),
+                    format!("image file {} {}", base.join(uri).display(), missing(&file)),
                 ));
             }
             if std::fs::metadata(&file).is_ok_and(|m| m.len() > MAX_RESOURCE_BYTES) {

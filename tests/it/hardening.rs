@@ -257,10 +257,20 @@ fn fifos_are_refused_without_waiting_for_a_writer() {
     let fifo_scene = fifo("scene.gltf");
     let on_fifo_scene = job_with("fifo_scene.json", &fifo_scene);
     let fifo_state = fifo("room.0000.state");
+    // A glTF whose external buffer is a FIFO.
+    let with_fifo_buffer = dir.path().join("buffer.gltf");
+    std::fs::write(
+        &with_fifo_buffer,
+        r#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":4,"uri":"b.bin"}]}"#,
+    )
+    .unwrap();
+    fifo("b.bin");
+    let with_fifo_buffer = with_fifo_buffer.to_str().unwrap().to_string();
     for args in [
         vec!["validate", fifo_job.as_str()],
         vec!["inspect", fifo_scene.as_str()],
         vec!["validate", on_fifo_scene.as_str()],
+        vec!["inspect", with_fifo_buffer.as_str()],
         vec!["render", &job, "--frames", "1", "--resume", &fifo_state],
     ] {
         let mut child = bin()
