@@ -217,32 +217,6 @@ fn warmup_frames() -> clap::builder::RangedI64ValueParser<u32> {
 /// than would exhaust its memory for stacks.
 const MAX_THREADS: usize = 1024;
 
-/// Refuses a farm template written over an input: the job file or a file its scene reads
-/// (the same file by any path, link or hard link, where it exists).
-fn refuse_overwriting_inputs<'a>(
-    template: &Path,
-    job: &'a Path,
-    scene: impl Iterator<Item = &'a Path>,
-) -> Result<(), Error> {
-    use std::os::unix::fs::MetadataExt;
-    let Ok(t) = std::fs::metadata(template) else {
-        return Ok(());
-    };
-    let same =
-        |p: &Path| std::fs::metadata(p).is_ok_and(|m| (m.dev(), m.ino()) == (t.dev(), t.ino()));
-    if let Some(input) = std::iter::once(job).chain(scene).find(|p| same(p)) {
-        return Err(Error::input(
-            template,
-            "--template",
-            format!(
-                "is {}, which the job reads: the template would overwrite it",
-                input.display()
-            ),
-        ));
-    }
-    Ok(())
-}
-
 fn set_threads(threads: Option<usize>) -> Result<(), Error> {
     if let Some(n) = threads {
         if n == 0 || n > MAX_THREADS {
@@ -367,6 +341,7 @@ fn run(cli: Cli) -> Result<(), Error> {
             let scene = job.load_scene()?;
             anchorage::budget::check(&job, &scene, None)?;
             anchorage::output::refuse_inputs(
+                "--out",
                 ["compare.json", "compare.png", "compare.svg"].map(|f| job.out_dir.join(f)),
             )?;
             anchorage::output::check_output_dir(&job.out_dir)?;
@@ -456,7 +431,7 @@ fn run(cli: Cli) -> Result<(), Error> {
                 _ => PathBuf::from("."),
             };
             if let Some(path) = &template {
-                refuse_overwriting_inputs(path, &job.path, scene.files())?;
+                anchorage::output::refuse_inputs("--template", [path])?;
             }
             let t = farm::template(&job, chunk_size, split, &exe, &dir)?;
             let text = serde_json::to_string_pretty(&t).expect("a JSON value serialises") + "\n";

@@ -46,15 +46,17 @@ pub fn protect_inputs<'a>(files: impl IntoIterator<Item = &'a Path>) {
 }
 
 /// Refuses `paths` as outputs, before anything is written, if one names an input
-/// ([`protect_inputs`]).
-pub fn refuse_inputs<P: AsRef<Path>>(paths: impl IntoIterator<Item = P>) -> Result<()> {
-    paths.into_iter().try_for_each(|p| refuse_input(p.as_ref()))
+/// ([`protect_inputs`]); the error names `at`, the key or flag that chose them.
+pub fn refuse_inputs<P: AsRef<Path>>(at: &str, paths: impl IntoIterator<Item = P>) -> Result<()> {
+    paths
+        .into_iter()
+        .try_for_each(|p| refuse_input(at, p.as_ref()))
 }
 
 /// Refuses `path` as an output if it is one of the inputs ([`protect_inputs`]): the same
 /// file (device and inode) as an input's path is now, so that an input replaced since its
 /// load, whose inode a new file may take, is not mistaken for its old self.
-fn refuse_input(path: &Path) -> Result<()> {
+fn refuse_input(at: &str, path: &Path) -> Result<()> {
     use std::os::unix::fs::MetadataExt;
     let Ok(m) = std::fs::metadata(path) else {
         return Ok(());
@@ -65,7 +67,7 @@ fn refuse_input(path: &Path) -> Result<()> {
     if inputs.iter().any(same) {
         return Err(Error::input(
             path,
-            "output",
+            at,
             "is a file this run reads (the job, or a file of its scene): writing the output \
              would replace it; choose another output directory or name",
         ));
@@ -141,7 +143,7 @@ pub fn stage(
 /// removed again, so the set appears whole or not at all.
 pub fn commit(files: Vec<Staged>) -> Result<()> {
     for f in &files {
-        refuse_input(&f.path)?;
+        refuse_input("output", &f.path)?;
     }
     let _committing = COMMITTING.lock().unwrap_or_else(|e| e.into_inner());
     let mut done: Vec<PathBuf> = Vec::new();

@@ -329,6 +329,7 @@ pub fn render_job(job: &Job, scene: &Scene, opts: RenderOptions) -> Result<Vec<F
         &["exr", "json"]
     };
     output::refuse_inputs(
+        "output",
         (job.frames.start..=job.frames.end)
             .flat_map(|f| exts.iter().map(move |e| job.frame_path(f, e)))
             .chain(so.out.iter().flat_map(|d| {
