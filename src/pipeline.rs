@@ -135,7 +135,7 @@ pub fn render_frame_with(
         Method::Precomputed => Some(CachedMethod::Precomputed),
         Method::Anchors => Some(CachedMethod::Anchors),
     };
-    let (img, rc) = match (job.method.name, cached) {
+    let (mut img, rc) = match (job.method.name, cached) {
         (_, Some(method)) => {
             let state = CachedState {
                 cache: &mut state.cache,
@@ -215,6 +215,9 @@ pub fn render_frame_with(
             r
         }
     };
+    if scene.emission_scale != 1.0 {
+        img.unscale(scene.emission_scale);
+    }
     let c = &mut stats.counts;
     c.triangles_static = fs.static_geometry.len() as u64;
     c.triangles_dynamic = fs.dynamic_geometry.len() as u64;

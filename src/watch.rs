@@ -25,7 +25,9 @@
 //!   the new view needs them, and those the new view does not use are dropped.
 //! - **rebuild** — static geometry, an alpha cut-out material (or its texture: alpha shapes
 //!   the geometry rays see), or a setting the cache depends on (method, strata, photons,
-//!   resolution, seed, ...), changed: a fresh state, as `render` starts with.
+//!   resolution, seed, ...), changed, or an edit of the light moved the scene's working
+//!   level of emission ([`crate::scene::Scene::emission_scale`], only for light beyond
+//!   2^±40 of 1): a fresh state, as `render` starts with.
 //!
 //! The state of every frame of the range is kept after its render, so that a frame is
 //! re-rendered from the state it left itself. Methods without anchors (`brute-force`,
@@ -269,6 +271,17 @@ pub fn classify(old: &Loaded, new: &Loaded) -> Changes {
         if changed {
             note(format!("setting {name}"), Rule::Rebuild, &mut rule);
         }
+    }
+    // The state holds light at the old scene's working level.
+    if os.emission_scale != ns.emission_scale {
+        note(
+            format!(
+                "light level: emission scaled by {:e} for rendering, was {:e}",
+                ns.emission_scale, os.emission_scale
+            ),
+            Rule::Rebuild,
+            &mut rule,
+        );
     }
     if osig.statics != nsig.statics {
         let prims = changed_prims(os, ns, Motion::Static);

@@ -47,6 +47,44 @@ pub struct PixelVariance {
 }
 
 impl FrameImage {
+    /// Divides the radiance AOVs by `scale` (a power of two: exactly), and the variances by
+    /// its square, each held to f32's largest value: the image of a scene whose emission was
+    /// multiplied by `scale` ([`crate::scene::Scene::emission_scale`]), at the scene's own
+    /// level. Depth and the cache AOVs do not depend on the light.
+    pub fn unscale(&mut self, scale: f32) {
+        let by = |v: f32, s: f64| {
+            let q = f64::from(v) / s;
+            if q > f64::from(f32::MAX) {
+                f32::MAX
+            } else {
+                q as f32
+            }
+        };
+        let s = f64::from(scale);
+        for p in &mut self.beauty {
+            for v in &mut p[..3] {
+                *v = by(*v, s);
+            }
+        }
+        for aov in [
+            &mut self.direct,
+            &mut self.indirect,
+            &mut self.diffuse_direct,
+            &mut self.glossy_direct,
+            &mut self.diffuse_indirect,
+            &mut self.glossy_indirect,
+        ] {
+            for v in aov.iter_mut().flatten() {
+                *v = by(*v, s);
+            }
+        }
+        for v in [&mut self.variance.beauty, &mut self.variance.indirect] {
+            for v in v.iter_mut().flatten() {
+                *v = by(*v, s * s);
+            }
+        }
+    }
+
     /// Drops the cache AOVs (for methods without a cache).
     pub fn drop_cache_aovs(&mut self) {
         self.anchor_id = None;

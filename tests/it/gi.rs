@@ -339,6 +339,74 @@ fn brute_force_is_the_same_at_any_scene_scale_and_intensity() {
     }
 }
 
+/// The same image at any intensity ([`anchorage::scene::Scene::emission_scale`]): the
+/// furnace with every wall emitting 1e20, 1e37 and 1e-38 against 1, by every method that
+/// gathers, beauty and indirect light divided by the intensity. Before the renderer worked
+/// at a level of its own, each failed here: the cached methods' indirect light was 0.3 %
+/// off at 1e20 (squares of photon powers overflowed f32; the example room's, 12 % per
+/// pixel) and all lost at 1e37, `anchors` lost it at 1e-38 too, and the path tracer's
+/// beauty was 52 % off at 1e37.
+#[test]
+fn every_method_is_the_same_at_extreme_intensities() {
+    let dir = tempdir();
+    for method in ["brute-force", "anchors", "precomputed", "path-trace"] {
+        let job = |le: f32| furnace(dir.path(), 0.5, le, 1.0, method, r#","preset":"draft""#);
+        let base = render(&job(1.0), 0);
+        for le in [1e20f32, 1e37, 1e-38] {
+            let img = render(&job(le), 0);
+            let rms = |f: &dyn Fn(&anchorage::integrator::FrameImage, usize) -> [f32; 3]| {
+                let (mut d, mut n) = (0.0f64, 0.0f64);
+                for i in 0..img.beauty.len() {
+                    let (a, b) = (f(&img, i), f(&base, i));
+                    for c in 0..3 {
+                        assert!(a[c].is_finite(), "{method} at Le {le}: pixel {i} {}", a[c]);
+                        d += (f64::from(a[c]) / f64::from(le) - f64::from(b[c])).powi(2);
+                        n += f64::from(b[c]).powi(2);
+                    }
+                }
+                (d / n).sqrt()
+            };
+            let beauty = rms(&|m, i| [m.beauty[i][0], m.beauty[i][1], m.beauty[i][2]]);
+            let indirect = rms(&|m, i| m.indirect[i]);
+            eprintln!(
+                "{method} at Le {le}: relative RMS difference {beauty:.1e} beauty, {indirect:.1e} indirect"
+            );
+            assert!(
+                beauty < 1e-3 && indirect < 1e-3,
+                "{method} at Le {le}: relative RMS difference {beauty} (beauty), {indirect} (indirect)"
+            );
+        }
+    }
+}
+
+/// Watch mode keeps the anchors' state across an edit of the light (a relight), but not
+/// across one that moves the scene's working level of emission: the state holds light at
+/// the old level.
+#[test]
+fn watch_rebuilds_when_an_edit_moves_the_light_level() {
+    use anchorage::watch::{Loaded, Rule, classify};
+    let dir = tempdir();
+    let load = |le: f32| {
+        furnace(dir.path(), 0.5, le, 1.0, "anchors", "");
+        let job = dir.path().join("watched.json");
+        std::fs::write(
+            &job,
+            r#"{"scene":[{"path":"furnace.gltf"}],
+            "camera":{"position":[0,0,0.5],"look_at":[0,0,-1],"yfov_deg":70},
+            "resolution":[24,24],"method":{"name":"anchors","preset":"draft"}}"#,
+        )
+        .unwrap();
+        Loaded::load(&job, &Default::default()).unwrap()
+    };
+    let (one, two, bright) = (load(1.0), load(2.0), load(1e20));
+    let c = classify(&one, &two);
+    assert_eq!(c.rule, Rule::Relight, "{}", c.what.join(", "));
+    let c = classify(&two, &bright);
+    let what = c.what.join(", ");
+    assert_eq!(c.rule, Rule::Rebuild, "{what}");
+    assert!(what.contains("light level"), "{what}");
+}
+
 #[test]
 fn cached_methods_give_the_same_bytes_with_one_and_two_threads() {
     let dir = tempdir();
