@@ -208,6 +208,18 @@ pub const MAX_GLB_BYTES: u64 = u32::MAX as u64;
 pub const MAX_RESOURCE_BYTES: u64 = u32::MAX as u64;
 /// The most texels a decoded image may have (16384²).
 pub const MAX_IMAGE_TEXELS: u64 = 16384 * 16384;
+/// The most bytes an image's decoded pixels may take: the `image` crate's default limit on
+/// an allocation, which the `gltf` crate's decoder keeps (a 16384² image within it has one
+/// or two 8-bit channels; RGBA8 reaches it at 16384 × 8192).
+pub const MAX_IMAGE_BYTES: u64 = 512 * 1024 * 1024;
+
+/// What an image's header declares ([`Reader::encoded_header`]).
+struct ImageHeader {
+    dimensions: (u32, u32),
+    color: image::ColorType,
+    /// The bytes of its decoded pixels.
+    bytes: u64,
+}
 
 /// Opens `file` (element `at` of the input), which must be a regular file of at most `limit`
 /// bytes: the file and its length, or an error naming it, before anything is read. A FIFO,
@@ -651,13 +663,26 @@ impl<'a> Reader<'a> {
         };
         let at = name_of("images", image, im.name());
         if textures.images[image].is_none() {
-            if let Some((w, h)) = self.encoded_dimensions(&im)?
-                && w as u64 * h as u64 > MAX_IMAGE_TEXELS
-            {
-                return Err(self.bad(
-                    &at,
-                    format!("{w}×{h} texels exceed the limit of {MAX_IMAGE_TEXELS} (16384²)"),
-                ));
+            if let Some(header) = self.encoded_header(&im)? {
+                let (w, h) = header.dimensions;
+                if w as u64 * h as u64 > MAX_IMAGE_TEXELS {
+                    return Err(self.bad(
+                        &at,
+                        format!("{w}×{h} texels exceed the limit of {MAX_IMAGE_TEXELS} (16384²)"),
+                    ));
+                }
+                if header.bytes > MAX_IMAGE_BYTES {
+                    return Err(self.bad(
+                        &at,
+                        format!(
+                            "{w}×{h} texels of {:?} take {} MiB decoded, beyond the decoder's \
+                             limit of {} MiB: save it smaller, or with fewer channels or bits",
+                            header.color,
+                            header.bytes.div_ceil(1 << 20),
+                            MAX_IMAGE_BYTES >> 20
+                        ),
+                    ));
+                }
             }
             let data = gltf::image::Data::from_source(im.source(), Some(self.base), self.buffers)
                 .map_err(|e| self.bad(&at, format!("cannot decode image: {e}")))?;
@@ -684,10 +709,10 @@ impl<'a> Reader<'a> {
         Ok(i)
     }
 
-    /// The width and height an image's header declares, read before it is decoded so that
-    /// an oversized image is refused without allocating its texels; `None` where the header
-    /// cannot be read (decoding then reports the error).
-    fn encoded_dimensions(&self, im: &gltf::Image<'_>) -> Result<Option<(u32, u32)>> {
+    /// What an image's header declares, read before it is decoded so that an oversized
+    /// image is refused without allocating its texels; `None` where the header cannot be
+    /// read (decoding then reports the error).
+    fn encoded_header(&self, im: &gltf::Image<'_>) -> Result<Option<ImageHeader>> {
         let at = name_of("images", im.index(), im.name());
         let owned;
         let bytes: &[u8] = match im.source() {
@@ -718,10 +743,16 @@ impl<'a> Reader<'a> {
                 &owned
             }
         };
+        use image::ImageDecoder;
         Ok(image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
             .ok()
-            .and_then(|r| r.into_dimensions().ok()))
+            .and_then(|r| r.into_decoder().ok())
+            .map(|d| ImageHeader {
+                dimensions: d.dimensions(),
+                color: d.color_type(),
+                bytes: d.total_bytes(),
+            }))
     }
 
     /// Reads `meshes` (glTF 2.0 §3.7.2) whose primitives use this file's `materials`; also

@@ -426,6 +426,24 @@ fn an_image_larger_than_16384_squared_is_refused_before_decoding() {
     assert_refused(&write(dir.path(), &doc), &["images[0]", "20000×20000"]);
 }
 
+/// An image within the texel limit whose decoded pixels exceed the decoder's allocation
+/// limit is refused from its header, saying so: 16384² RGB8 takes 768 MiB. (It said "cannot
+/// decode image: Memory limit exceeded".)
+#[test]
+fn an_image_too_large_to_decode_is_refused_saying_how_large() {
+    let dir = tempdir();
+    std::fs::write(dir.path().join("wide.png"), png_header(16384, 16384)).unwrap();
+    let mut doc = triangle();
+    doc["images"] = json!([{"uri": "wide.png"}]);
+    doc["textures"] = json!([{"source": 0}]);
+    doc["materials"] = json!([{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}]);
+    doc["meshes"][0]["primitives"][0]["material"] = json!(0);
+    assert_refused(
+        &write(dir.path(), &doc),
+        &["images[0]", "16384×16384", "Rgb8", "768 MiB", "512 MiB"],
+    );
+}
+
 #[test]
 fn sparse_storage_must_fit_its_buffer_views() {
     refused_after(
