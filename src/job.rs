@@ -979,20 +979,43 @@ fn output(
     Ok((out_dir, name, exposure))
 }
 
-/// A JSON error with the key path where serde stopped and the offending line (Tungsten-style).
+/// A JSON error with the key path where serde stopped and the offending line (Tungsten-style):
+/// serde's message without its own "at line L column C", and of a long line (a job written
+/// on one line) the [`EXCERPT_CHARS`] characters either side of the column.
 fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> Error {
-    let line = e.line();
-    let excerpt = text
-        .lines()
-        .nth(line.saturating_sub(1))
-        .map(|l| l.trim())
-        .unwrap_or("");
+    let (line, column) = (e.line(), e.column());
+    let message = e.to_string();
+    let message = message
+        .strip_suffix(&format!(" at line {line} column {column}"))
+        .unwrap_or(&message);
+    let full = text.lines().nth(line.saturating_sub(1)).unwrap_or("");
+    let chars: Vec<char> = full.chars().collect();
+    let at = column.saturating_sub(1).min(chars.len());
+    let (from, to) = (
+        at.saturating_sub(EXCERPT_CHARS),
+        (at + EXCERPT_CHARS).min(chars.len()),
+    );
+    let excerpt: String = chars[from..to].iter().collect();
+    let excerpt = format!(
+        "{}{}{}",
+        if from > 0 { "…" } else { "" },
+        if from > 0 {
+            excerpt.as_str()
+        } else {
+            excerpt.trim_start()
+        },
+        if to < chars.len() { "…" } else { "" }
+    );
     Error::input(
         path,
-        format!("line {line}, column {}", e.column()),
-        format!("{e}\n    {excerpt}"),
+        format!("line {line}, column {column}"),
+        format!("{message}\n    {}", excerpt.trim_end()),
     )
 }
+
+/// How many characters of the offending line a job-file error shows either side of the
+/// column ([`json_error`]).
+const EXCERPT_CHARS: usize = 60;
 
 /// The JSON Schema of job files (`schemas/job.schema.json`), generated from [`JobFile`].
 pub fn schema() -> schemars::Schema {

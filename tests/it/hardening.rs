@@ -470,6 +470,28 @@ fn a_job_camera_error_names_the_key() {
     }
 }
 
+/// A job-file error says where once (serde's own "at line L column C" dropped), and of a job
+/// written on one line shows the text around the column, not the whole line.
+#[test]
+fn a_job_file_error_shows_where_once_and_the_text_around_it() {
+    let dir = tempdir();
+    let p = dir.path().join("job.json");
+    let pad = "x".repeat(500);
+    std::fs::write(
+        &p,
+        format!(r#"{{"scene":[{{"path":"room.gltf"}}],"pad":"{pad}","resolution":[64,"x"]}}"#),
+    )
+    .unwrap();
+    let o = run(&["validate", p.to_str().unwrap()]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(
+        e.contains("line 1, column ") && !e.contains(" at line "),
+        "{e}"
+    );
+    assert!(e.contains("unknown field `pad`") && e.len() < 400, "{e}");
+}
+
 /// No output replaces an input: a job whose name is one of its own frames' stats, or a
 /// `compare` job written where its table goes, is refused before anything renders. A
 /// directory that cannot be made is found before any other is made, and `validate` makes
