@@ -736,7 +736,9 @@ impl Job {
                 }
             }
         }
-        scene.check_camera((self.frames.start..=self.frames.end).map(|f| (f, self.time_of(f))))?;
+        let frames = (self.frames.start..=self.frames.end).map(|f| (f, self.time_of(f)));
+        scene.check_camera(frames.clone())?;
+        scene.check_lights(frames)?;
         crate::output::protect_inputs(std::iter::once(self.path.as_path()).chain(scene.files()));
         Ok(scene)
     }

@@ -572,12 +572,14 @@ impl PhotonMap {
                         .partition_point(|&x| x <= s.get(DIM_LIGHT))
                         .min(sources.len() - 1);
                     let p_pick = (weights[k] / total) as f32;
-                    let Some((o, dir, flux)) = emit(frame, &sources[k], &s, centre, radius) else {
+                    let Some((o, dir, flux, reach)) = emit(frame, &sources[k], &s, centre, radius)
+                    else {
                         continue;
                     };
                     let flux = flux / (p_pick * count as f32);
                     let first = out.len();
-                    trace_path(frame, m, o, dir, flux, &s, max_bounces, &mut out);
+                    let ray = (o, dir, reach);
+                    trace_path(frame, m, ray, flux, &s, max_bounces, &mut out);
                     if direct == GatherDirect::ShadowRays
                         && matches!(sources[k], Source::Punctual(_))
                         && out.len() > first
@@ -883,22 +885,26 @@ impl PhotonMap {
     }
 }
 
-/// Origin, direction and flux of a photon leaving `source`.
+/// Origin, direction and flux of a photon leaving `source`, and how far its light reaches:
+/// a point or spot light's `range` (`KHR_lights_punctual`: beyond it the light is zero, as
+/// direct light has it), else infinity.
 fn emit(
     frame: &FrameScene,
     source: &Source,
     s: &PhotonSamples,
     centre: Vec3,
     radius: f32,
-) -> Option<(Vec3, Vec3, Vec3)> {
+) -> Option<(Vec3, Vec3, Vec3, f32)> {
     match *source {
         Source::Punctual(i) => {
             let l = &frame.lights[i];
+            let reach = l.range.unwrap_or(f32::INFINITY);
             match l.kind {
                 LightKind::Point => Some((
                     l.position,
                     uniform_sphere(s.get(DIM_EMIT + 2), s.get(DIM_EMIT + 3)),
                     4.0 * PI * l.intensity,
+                    reach,
                 )),
                 LightKind::Spot { inner, outer } => {
                     // Uniform in the outer cone, weighted by the smooth falloff.
@@ -910,7 +916,12 @@ fn emit(
                     let d =
                         (t * (r * phi.cos()) + b * (r * phi.sin()) + l.direction * z).normalize();
                     let f = ((z - co) / (ci - co).max(1e-4)).clamp(0.0, 1.0);
-                    Some((l.position, d, 2.0 * PI * (1.0 - co) * l.intensity * f * f))
+                    Some((
+                        l.position,
+                        d,
+                        2.0 * PI * (1.0 - co) * l.intensity * f * f,
+                        reach,
+                    ))
                 }
                 LightKind::Directional => {
                     let (t, b) = basis(l.direction);
@@ -919,7 +930,12 @@ fn emit(
                     let o = centre - l.direction * (2.0 * radius)
                         + t * (r * phi.cos())
                         + b * (r * phi.sin());
-                    Some((o, l.direction, PI * radius * radius * l.intensity))
+                    Some((
+                        o,
+                        l.direction,
+                        PI * radius * radius * l.intensity,
+                        f32::INFINITY,
+                    ))
                 }
             }
         }
@@ -951,30 +967,31 @@ fn emit(
                 offset_ray_origin(y, y_error, n, d),
                 d,
                 PI * l_e * e.area * sides,
+                f32::INFINITY,
             ))
         }
     }
 }
 
-/// Follows one photon, storing it at every diffuse hit.
-#[allow(clippy::too_many_arguments)] // the photon's state, spelled out
+/// Follows one photon leaving along `ray` (origin, direction, and how far its light reaches
+/// to its first hit), storing it at every diffuse hit.
 fn trace_path(
     frame: &FrameScene,
     m: Materials,
-    mut o: Vec3,
-    mut dir: Vec3,
+    ray: (Vec3, Vec3, f32),
     mut flux: Vec3,
     s: &PhotonSamples,
     max_bounces: u32,
     out: &mut Vec<Photon>,
 ) {
+    let (mut o, mut dir, reach) = ray;
     for bounce in 0..=max_bounces {
         let Some(hit) = frame.accel.closest(
             &frame.static_geometry,
             &frame.dynamic_geometry,
             o,
             dir,
-            f32::INFINITY,
+            if bounce == 0 { reach } else { f32::INFINITY },
         ) else {
             return;
         };

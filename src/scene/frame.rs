@@ -355,15 +355,20 @@ pub struct PunctualLight {
 impl PunctualLight {
     /// The light of a node with world matrix `world`, in the render space whose origin is
     /// the world point `origin`.
+    /// The light points along the node's −Z axis as `world` maps it, which a non-uniform
+    /// scale above a rotated node turns (a decomposition into a rotation would not);
+    /// [`crate::scene::Scene::check_lights`] refuses a node that maps it to zero. Range and
+    /// intensity do not change with the node's scale (`KHR_lights_punctual`).
     pub fn new(l: &Light, world: DMat4, origin: DVec3) -> Self {
-        let (scale, rot, position) = world.to_scale_rotation_translation();
         PunctualLight {
             kind: l.kind,
-            position: (position - origin).as_vec3(),
-            direction: (rot.as_quat() * -Vec3::Z).normalize(),
+            position: (world.w_axis.truncate() - origin).as_vec3(),
+            direction: world
+                .transform_vector3(DVec3::NEG_Z)
+                .normalize_or_zero()
+                .as_vec3(),
             intensity: l.color * l.intensity,
-            // Range is in the light node's units.
-            range: l.range.map(|r| r * scale.abs().max_element() as f32),
+            range: l.range,
         }
     }
 }

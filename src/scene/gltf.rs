@@ -297,7 +297,8 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<Vec<Pat
         if let gltf::buffer::Source::Uri(uri) = b.source()
             && !uri.starts_with("data:")
         {
-            let file = base.join(urlencoding_decode(uri));
+            let at = name_of("buffers", b.index(), b.name());
+            let file = uri_file(path, &at, base, uri)?;
             if let Ok(m) = std::fs::metadata(&file)
                 && m.is_file()
                 && m.len() > MAX_RESOURCE_BYTES
@@ -325,8 +326,8 @@ fn check_files(path: &Path, doc: &gltf::Document, base: &Path) -> Result<Vec<Pat
         if let gltf::image::Source::Uri { uri, .. } = im.source()
             && !uri.starts_with("data:")
         {
-            let file = base.join(urlencoding_decode(uri));
             let at = name_of("images", im.index(), im.name());
+            let file = uri_file(path, &at, base, uri)?;
             if !file.is_file() {
                 return Err(Error::input(
                     path,
@@ -737,7 +738,10 @@ impl<'a> Reader<'a> {
                     };
                     owned = b;
                 } else {
-                    let file = self.base.join(urlencoding_decode(uri));
+                    let Some(uri) = urlencoding_decode(uri) else {
+                        return Ok(None);
+                    };
+                    let file = self.base.join(uri);
                     owned = read_limited(&file, &at, MAX_RESOURCE_BYTES)?;
                 }
                 &owned
@@ -836,6 +840,35 @@ impl<'a> Reader<'a> {
         }
         let targets = self.morph_targets(at, r.read_morph_targets(), positions.len())?;
         let local = p.material().index().and_then(|i| materials.get(i));
+        let uv_at = format!("{at}.attributes.TEXCOORD_0");
+        match &uvs {
+            Some(uvs) => {
+                if let Some(v) = uvs.iter().position(|t| !t.is_finite()) {
+                    return Err(self.bad(&uv_at, format!("vertex {v}'s {} is not finite", uvs[v])));
+                }
+            }
+            None => {
+                if let Some(m) = local.filter(|m| {
+                    m.base_color_texture.is_some()
+                        || m.normal_texture.is_some()
+                        || m.emissive_texture.is_some()
+                        || m.metallic_roughness_texture.is_some()
+                }) {
+                    return Err(self.bad(
+                        &uv_at,
+                        format!(
+                            "is missing, but the primitive's material {} has textures, which \
+                             are read through it",
+                            name_of(
+                                "materials",
+                                p.material().index().unwrap_or(0),
+                                Some(&m.name)
+                            ),
+                        ),
+                    ));
+                }
+            }
+        }
         let material = match p.material().index() {
             Some(i) => self.offsets.materials + 1 + i,
             None => 0,
@@ -1223,6 +1256,9 @@ impl<'a> Reader<'a> {
             .read_inputs()
             .ok_or_else(|| self.bad(at, "sampler has no input"))?
             .collect();
+        if times.is_empty() {
+            return Err(self.bad(at, "sampler has no keys (its input accessor's count is 0)"));
+        }
         if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
             return Err(self.bad(at, "key times must be finite and increasing"));
         }
@@ -1254,8 +1290,45 @@ impl<'a> Reader<'a> {
                 ),
             ));
         }
+        let node = ch.target().node();
+        if property == Property::Weights
+            && let Some(mesh) = node.mesh()
+        {
+            let targets = mesh
+                .primitives()
+                .next()
+                .map_or(0, |p| p.morph_targets().len());
+            if targets > 0 && width != targets {
+                return Err(self.bad(
+                    at,
+                    format!(
+                        "sampler output has {} weights a key for {} ({}), which has {targets} morph targets",
+                        width,
+                        name_of("nodes", node.index(), node.name()),
+                        name_of("meshes", mesh.index(), mesh.name()),
+                    ),
+                ));
+            }
+        }
+        if property == Property::Rotation {
+            // A key's value (a cubic spline's middle element): a rotation, not zero.
+            let zero = (0..times.len()).find(|&k| {
+                let i = (k * stride + stride / 2) * width;
+                let q = Vec4::from_slice(&values[i..i + 4]);
+                !(q.abs().max_element() > 0.0)
+            });
+            if let Some(k) = zero {
+                return Err(self.bad(
+                    at,
+                    format!(
+                        "rotation key {k} (t = {}) is the zero quaternion, not a rotation",
+                        times[k]
+                    ),
+                ));
+            }
+        }
         Ok(Channel {
-            node: ch.target().node().index(),
+            node: node.index(),
             property,
             sampler: Sampler {
                 interpolation,
@@ -1379,24 +1452,41 @@ fn base64_decode(text: &str) -> Option<Vec<u8>> {
     Some(out)
 }
 
-/// Percent-decoding of relative URIs (glTF URIs are RFC 3986).
-fn urlencoding_decode(uri: &str) -> String {
+/// Percent-decoding of relative URIs (glTF URIs are RFC 3986): `None` where the bytes it
+/// decodes to are not UTF-8 (the `gltf` crate, which decodes the URI again to read the file,
+/// would panic on them). A `%` not followed by two hex digits stays as it is.
+fn urlencoding_decode(uri: &str) -> Option<String> {
     let b = uri.as_bytes();
+    let hex = |c: u8| (c as char).to_digit(16);
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
     while i < b.len() {
         if b[i] == b'%'
             && i + 2 < b.len()
-            && let Ok(v) = u8::from_str_radix(&uri[i + 1..i + 3], 16)
+            && let (Some(high), Some(low)) = (hex(b[i + 1]), hex(b[i + 2]))
         {
-            out.push(v);
+            out.push((high * 16 + low) as u8);
             i += 3;
             continue;
         }
         out.push(b[i]);
         i += 1;
     }
-    String::from_utf8_lossy(&out).into_owned()
+    String::from_utf8(out).ok()
+}
+
+/// The file a relative URI names beside the glTF file: `base` joined with the decoded URI,
+/// or the error naming element `at` of `path` when the URI does not decode to UTF-8.
+fn uri_file(path: &Path, at: &str, base: &Path, uri: &str) -> Result<PathBuf> {
+    urlencoding_decode(uri)
+        .map(|u| base.join(u))
+        .ok_or_else(|| {
+            Error::input(
+                path,
+                format!("{at}.uri"),
+                format!("{uri:?} percent-decodes to bytes that are not UTF-8"),
+            )
+        })
 }
 
 /// Checks that every accessor's elements lie inside its buffer view and every view inside its

@@ -907,6 +907,44 @@ impl Scene {
         Ok(())
     }
 
+    /// Refuses a spot or directional light whose node maps its −Z axis, the way it points, to
+    /// zero (a node scaled to zero along it) at one of `frames` (frame numbers with their
+    /// times): it would light nothing. The error names the node and the first such frame. A
+    /// point light has no direction and is left alone.
+    pub fn check_lights(&self, frames: impl IntoIterator<Item = (i32, f32)> + Clone) -> Result<()> {
+        for l in &self.layers {
+            let anim = l.samplers();
+            for (node, n) in l.nodes.iter().enumerate() {
+                let Some(light) = n.light else { continue };
+                if l.lights[light].kind == LightKind::Point {
+                    continue;
+                }
+                for (frame, t) in frames.clone() {
+                    let d = l
+                        .world_matrix_f64(node, t, &anim)
+                        .transform_vector3(DVec3::NEG_Z);
+                    if d.length() > 0.0 && d.is_finite() {
+                        continue;
+                    }
+                    let at = match n.name.as_str() {
+                        "" => format!("nodes[{node}]"),
+                        name => format!("nodes[{node}] \"{name}\""),
+                    };
+                    return Err(Error::input(
+                        &l.path,
+                        at,
+                        format!(
+                            "at frame {frame} (t = {t:.4} s) this spot or directional light's \
+                             node scales its −Z axis, the way the light points, to {d}: it would \
+                             light nothing"
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Loads the layers and resolves tags; the camera is resolved where one exists (a camera
     /// the description names must exist). For `inspect`, which also reads scenes without
     /// cameras.

@@ -330,6 +330,12 @@ impl V<'_> {
                     r.buffer_views.len(),
                     "bufferViews",
                 )?;
+                if im.mime_type.is_none() {
+                    return Err(self.bad(
+                        format!("images[{i}].mimeType"),
+                        "is missing: an image in a bufferView must give it (glTF 2.0 §5.17)",
+                    ));
+                }
             } else if im.uri.is_none() {
                 return Err(self.bad(format!("images[{i}]"), "has neither a uri nor a bufferView"));
             }
@@ -486,6 +492,17 @@ impl V<'_> {
                 if let Some(i) = prim.indices {
                     self.accessor(&format!("{at}.indices"), i.value(), &indices)?;
                 }
+                let targets = prim.targets.as_ref().map_or(0, Vec::len);
+                let first = mesh.primitives[0].targets.as_ref().map_or(0, Vec::len);
+                if targets != first {
+                    return Err(self.bad(
+                        format!("{at}.targets"),
+                        format!(
+                            "has {targets} morph targets where primitives[0] has {first}; every \
+                             primitive of a mesh must have the same (glTF 2.0 §3.7.2.2)"
+                        ),
+                    ));
+                }
                 for (t, target) in prim.targets.iter().flatten().enumerate() {
                     for (key, a) in [
                         ("POSITION", target.positions),
@@ -505,8 +522,74 @@ impl V<'_> {
                     }
                 }
             }
+            let targets = self.targets(m);
+            if let Some(w) = &mesh.weights
+                && w.len() != targets
+            {
+                return Err(self.bad(
+                    format!("meshes[{m}].weights"),
+                    format!("has {} weights for {targets} morph targets", w.len()),
+                ));
+            }
         }
         Ok(())
+    }
+
+    /// The number of morph targets of mesh `m` (its first primitive's; [`V::meshes`] checks
+    /// that every primitive has as many).
+    fn targets(&self, m: usize) -> usize {
+        self.root.meshes[m]
+            .primitives
+            .first()
+            .and_then(|p| p.targets.as_ref())
+            .map_or(0, Vec::len)
+    }
+
+    /// A node's `rotation` and `matrix` (glTF 2.0 §5.25): a rotation that is not zero, and a
+    /// matrix that is finite, affine, and a rotation and a scale (each axis's squared length
+    /// finite in f32, none zero, the axes at right angles), which is how it is read.
+    fn transform(&self, at: &str, node: &json::Node) -> Result<()> {
+        if let Some(q) = &node.rotation {
+            let q = q.0;
+            if !q.iter().all(|c| c.is_finite()) || q.iter().all(|&c| c == 0.0) {
+                return Err(self.bad(
+                    format!("{at}.rotation"),
+                    format!("{q:?} is not a rotation (a unit quaternion)"),
+                ));
+            }
+        }
+        let Some(m) = &node.matrix else {
+            return Ok(());
+        };
+        let why = if !m.iter().all(|c| c.is_finite()) {
+            Some("is not finite")
+        } else if m[3] != 0.0 || m[7] != 0.0 || m[11] != 0.0 || m[15] != 1.0 {
+            Some("is not affine (its last row must be 0, 0, 0, 1)")
+        } else {
+            let axes: Vec<[f64; 3]> = (0..3)
+                .map(|c| std::array::from_fn(|r| f64::from(m[4 * c + r])))
+                .collect();
+            let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+            let len2: Vec<f64> = axes.iter().map(|a| dot(a, a)).collect();
+            if len2.contains(&0.0) {
+                Some(
+                    "scales an axis to zero: give such a transform as translation, rotation and scale",
+                )
+            } else if len2.iter().any(|&l| l > f64::from(f32::MAX)) {
+                Some("scales an axis beyond what f32 can square")
+            } else if (0..3).any(|i| {
+                let j = (i + 1) % 3;
+                dot(&axes[i], &axes[j]).abs() > 1e-3 * (len2[i] * len2[j]).sqrt()
+            }) {
+                Some("shears: it is not a rotation and a scale, which glTF requires of a matrix")
+            } else {
+                None
+            }
+        };
+        match why {
+            Some(why) => Err(self.bad(format!("{at}.matrix"), why)),
+            None => Ok(()),
+        }
     }
 
     /// Nodes and scenes (glTF 2.0 §3.5): every index in range, and the node hierarchy a
@@ -522,6 +605,19 @@ impl V<'_> {
         let mut parent: Vec<Option<usize>> = vec![None; n];
         for (i, node) in r.nodes.iter().enumerate() {
             let at = format!("nodes[{i}]");
+            self.transform(&at, node)?;
+            if let Some(m) = node.mesh {
+                self.index(&format!("{at}.mesh"), m.value(), r.meshes.len(), "meshes")?;
+                let targets = self.targets(m.value());
+                if let Some(w) = &node.weights
+                    && w.len() != targets
+                {
+                    return Err(self.bad(
+                        format!("{at}.weights"),
+                        format!("has {} weights for {targets} morph targets", w.len()),
+                    ));
+                }
+            }
             if let Some(c) = node.camera {
                 self.index(
                     &format!("{at}.camera"),
@@ -529,9 +625,6 @@ impl V<'_> {
                     r.cameras.len(),
                     "cameras",
                 )?;
-            }
-            if let Some(m) = node.mesh {
-                self.index(&format!("{at}.mesh"), m.value(), r.meshes.len(), "meshes")?;
             }
             if let Some(s) = node.skin {
                 self.index(&format!("{at}.skin"), s.value(), r.skins.len(), "skins")?;
@@ -566,27 +659,36 @@ impl V<'_> {
                 parent[c] = Some(i);
             }
         }
-        // With one parent each, a cycle is a chain of parents that comes back to its start.
+        // With one parent each, a cycle is a chain of parents that comes back to a node on
+        // it. Each node's chain is walked once, up to a node already known to lead to a root.
+        let mut done = vec![false; n];
+        let mut on_chain = vec![false; n];
         for start in 0..n {
-            let mut chain = vec![start];
-            let mut at = start;
-            while let Some(p) = parent[at] {
-                if p == start {
-                    let names: Vec<String> =
-                        chain.iter().rev().map(|c| format!("nodes[{c}]")).collect();
+            let mut chain = Vec::new();
+            let mut at = Some(start);
+            while let Some(a) = at.filter(|&a| !done[a]) {
+                if on_chain[a] {
+                    // The cycle: `a` and its ancestors up to `a` again, from the lowest index.
+                    let from = chain.iter().position(|&c| c == a).unwrap_or(0);
+                    let mut cycle = chain[from..].to_vec();
+                    let low = (0..cycle.len()).min_by_key(|&k| cycle[k]).unwrap_or(0);
+                    cycle.rotate_left(low);
+                    let names: Vec<String> = cycle.iter().map(|c| format!("nodes[{c}]")).collect();
                     return Err(self.bad(
-                        format!("nodes[{start}]"),
+                        format!("nodes[{}]", cycle[0]),
                         format!(
-                            "is its own ancestor (cycle {} → nodes[{start}])",
-                            names.join(" → ")
+                            "is its own ancestor (parents {} → nodes[{}])",
+                            names.join(" → "),
+                            cycle[0]
                         ),
                     ));
                 }
-                if chain.len() > n {
-                    break;
-                }
-                chain.push(p);
-                at = p;
+                on_chain[a] = true;
+                chain.push(a);
+                at = parent[a];
+            }
+            for c in chain {
+                done[c] = true;
             }
         }
         for (s, scene) in r.scenes.iter().enumerate() {
