@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use glam::{DMat3, DMat4, DVec3, Vec2, Vec3, Vec4};
 
-use super::{Clip, Light, LightKind, Primitive, Projection, Surfaces};
+use super::{Clip, Light, LightKind, Material, Primitive, Projection, Surfaces, Texture};
 use crate::accel::{Accel, StaticBvh};
 use crate::color::luminance;
 use crate::geom::{
@@ -383,15 +383,19 @@ pub struct Emitter {
     /// what its power, and so the probability of choosing it, is computed from.
     pub radiance: Vec3,
     pub double_sided: bool,
-    /// Its material has an emissive texture: the radiance at a point is
+    /// Its radiance varies over it (its material has an emissive texture, or an alpha
+    /// cut-out, whose removed parts emit nothing): the radiance at a point is
     /// [`FrameScene::emitted_radiance`], not [`Emitter::radiance`].
     pub textured: bool,
 }
 
-/// Samples per side of the stratified grid over which a textured emitter's radiance is
-/// averaged (8 × 8 = 64 points, uniform in area): the texture integrated over the triangle
-/// for its power. Only selection probabilities depend on it; every estimate reads the
-/// texture at its own point, so an inexact average adds noise, never bias.
+/// Samples per side of the stratified grid over which a textured or cut-out emitter's
+/// radiance is averaged (8 × 8 = 64 points, uniform in area): the texture integrated over
+/// the triangle for its power. Only selection probabilities depend on it; every estimate
+/// reads the texture (and the cut-out) at its own point, so an inexact average adds noise,
+/// never bias. An average of zero (light only between the points) keeps the triangle, with
+/// the power of one point in 64 at the material's full emission: dropping it lost that
+/// light.
 pub const EMISSION_AVERAGE_GRID: u32 = 8;
 
 /// Barycentrics (weights of `v1`, `v2`) of the uniform-area point `(u1, u2)` of a triangle
@@ -399,6 +403,17 @@ pub const EMISSION_AVERAGE_GRID: u32 = 8;
 pub fn uniform_barycentric(u1: f32, u2: f32) -> Vec2 {
     let su = u1.sqrt();
     Vec2::new(su * (1.0 - u2), su * u2)
+}
+
+/// The radiance triangle `i` of `g`, of material `m`, emits at barycentrics `b`: its
+/// emission there, or none where an alpha cut-out removes the surface.
+fn emitted_at(m: &Material, g: &Geometry, i: usize, b: Vec2, textures: &[Texture]) -> Vec3 {
+    let (uv, color) = Surfaces::uv_and_color(g, i, b);
+    if m.opaque_at(uv, color, textures) {
+        m.emission_at(uv, textures)
+    } else {
+        Vec3::ZERO
+    }
 }
 
 /// Emissive triangles with a power-proportional discrete distribution.
@@ -421,27 +436,29 @@ impl Emitters {
                 if !m.is_emissive() {
                     continue;
                 }
-                let radiance = match m.emissive_texture {
-                    None => m.emission,
-                    Some(_) => {
-                        let n = EMISSION_AVERAGE_GRID;
-                        let mut sum = Vec3::ZERO;
-                        for a in 0..n {
-                            for b in 0..n {
-                                let bc = uniform_barycentric(
-                                    (a as f32 + 0.5) / n as f32,
-                                    (b as f32 + 0.5) / n as f32,
-                                );
-                                let (uv, _) = Surfaces::uv_and_color(g, i, bc);
-                                sum += m.emission_at(uv, &surfaces.textures);
-                            }
+                let varies = m.emissive_texture.is_some() || m.alpha_cutoff.is_some();
+                let radiance = if varies {
+                    let n = EMISSION_AVERAGE_GRID;
+                    let mut sum = Vec3::ZERO;
+                    for a in 0..n {
+                        for b in 0..n {
+                            let bc = uniform_barycentric(
+                                (a as f32 + 0.5) / n as f32,
+                                (b as f32 + 0.5) / n as f32,
+                            );
+                            sum += emitted_at(m, g, i, bc, &surfaces.textures);
                         }
-                        sum / (n * n) as f32
                     }
+                    let mean = sum / (n * n) as f32;
+                    // Light between the grid's points still needs a chance to be chosen.
+                    if mean.max_element() > 0.0 {
+                        mean
+                    } else {
+                        m.emission / (n * n) as f32
+                    }
+                } else {
+                    m.emission
                 };
-                if radiance.max_element() <= 0.0 {
-                    continue;
-                }
                 let (_, area) = face_normal_area(t);
                 let luminance = luminance(radiance).max(1e-30);
                 // Power is used only in ratios: area × luminance × sides. Computed in f64 so
@@ -453,7 +470,7 @@ impl Emitters {
                     area: area as f32,
                     radiance,
                     double_sided: m.double_sided,
-                    textured: m.emissive_texture.is_some(),
+                    textured: varies,
                 });
             }
         }
@@ -550,9 +567,8 @@ impl FrameScene {
         }
         let g = self.geometry(e.motion);
         let i = e.triangle as usize;
-        let (uv, _) = Surfaces::uv_and_color(g, i, b);
-        self.surfaces.materials[g.shading[i].material as usize]
-            .emission_at(uv, &self.surfaces.textures)
+        let m = &self.surfaces.materials[g.shading[i].material as usize];
+        emitted_at(m, g, i, b, &self.surfaces.textures)
     }
 
     pub fn geometry(&self, motion: Motion) -> &Geometry {

@@ -896,3 +896,115 @@ fn watch_rebuilds_after_an_edit_of_a_cut_out_texture() {
     let (r, what) = rule("OPAQUE", [0, 255], [255, 255]);
     assert_eq!(r, Rule::Relight, "{what}");
 }
+
+/// An emitter's alpha cut-out removes its light as well as its surface: a double-sided
+/// emissive quad 1 above the floor whose left half has alpha 0 lights the floor as a quad
+/// of its right half alone does (direct light sampled on it, and the photons that leave it).
+/// Its removed half emitted as much as the rest: the floor got twice the direct light.
+#[test]
+fn a_cut_out_emitter_emits_only_where_its_surface_is() {
+    let dir = tempdir();
+    let render_with = |masked: bool, method: &str| {
+        let mut g = Gltf::default();
+        let (c, uv) = flat_quad(0.0, [-10.0, 10.0], [-10.0, 10.0], true);
+        let floor = g.quad(c, uv, 0, "");
+        let x = if masked { [-2.0, 2.0] } else { [0.0, 2.0] };
+        let (c, uv) = flat_quad(1.0, x, [-1.0, 1.0], true);
+        let lamp = g.quad(c, uv, 1, "");
+        let img = g.png(2, 1, &[255, 255, 255, 0, 255, 255, 255, 255]);
+        let cut = if masked {
+            r#""alphaMode":"MASK","pbrMetallicRoughness":{"baseColorTexture":{"index":0},"baseColorFactor":[0.8,0.8,0.8,1],"metallicFactor":0},"#
+        } else {
+            r#""pbrMetallicRoughness":{"baseColorFactor":[0.8,0.8,0.8,1],"metallicFactor":0},"#
+        };
+        let body = format!(
+            r#"{},"scenes":[{{"nodes":[0,1,2]}}],
+            "nodes":[{{"mesh":0}},{{"mesh":1}},{}],
+            "meshes":[{{"primitives":[{floor}]}},{{"primitives":[{lamp}]}}],
+            "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}},
+                         {{"name":"lamp",{cut}"emissiveFactor":[1,1,1],"doubleSided":true}}],
+            "samplers":[{{"wrapS":33071,"wrapT":33071,"magFilter":9728}}],
+            "textures":[{{"source":{img},"sampler":0}}]"#,
+            sun_light(0.0),
+            sun_node(PI / 4.0)
+        );
+        render(
+            &job(dir.path(), "lamp.gltf", g.finish(&body), method, 48),
+            0,
+        )
+    };
+    let mean = |img: &anchorage::integrator::FrameImage,
+                aov: fn(&anchorage::integrator::FrameImage, usize) -> f32| {
+        (0..img.direct.len())
+            .map(|i| f64::from(aov(img, i)))
+            .sum::<f64>()
+            / img.direct.len() as f64
+    };
+    for method in ["direct", "brute-force"] {
+        let (cut, half) = (render_with(true, method), render_with(false, method));
+        let direct = (
+            mean(&cut, |m, i| m.direct[i][1]),
+            mean(&half, |m, i| m.direct[i][1]),
+        );
+        eprintln!(
+            "{method}: direct light {:.4} cut out, {:.4} half",
+            direct.0, direct.1
+        );
+        assert!(
+            direct.1 > 0.0 && (direct.0 / direct.1 - 1.0).abs() < 0.1,
+            "{method}: {direct:?}"
+        );
+        if method == "brute-force" {
+            let ind = (
+                mean(&cut, |m, i| m.indirect[i][1]),
+                mean(&half, |m, i| m.indirect[i][1]),
+            );
+            eprintln!(
+                "{method}: indirect light {:.4} cut out, {:.4} half",
+                ind.0, ind.1
+            );
+            assert!(
+                ind.1 > 0.0 && (ind.0 / ind.1 - 1.0).abs() < 0.15,
+                "{method}: {ind:?}"
+            );
+        }
+    }
+}
+
+/// A textured emitter whose light lies only between the points its power is averaged at
+/// (the 16 × 16 texture's corner texel, next to both triangles' first vertex, where no
+/// point of the 8 × 8 grid falls) still lights the scene; it was dropped from the emitters.
+#[test]
+fn a_textured_emitter_lit_between_its_averaging_points_is_kept() {
+    let dir = tempdir();
+    let mut g = Gltf::default();
+    let (c, uv) = flat_quad(0.0, [-10.0, 10.0], [-10.0, 10.0], true);
+    let floor = g.quad(c, uv, 0, "");
+    let (c, uv) = flat_quad(1.0, [-2.0, 2.0], [-2.0, 2.0], true);
+    let lamp = g.quad(c, uv, 1, "");
+    let mut texels = vec![0u8; 16 * 16 * 4];
+    texels[..4].copy_from_slice(&[255, 255, 255, 255]);
+    for t in texels.chunks_mut(4) {
+        t[3] = 255;
+    }
+    let img = g.png(16, 16, &texels);
+    let body = format!(
+        r#"{},"scenes":[{{"nodes":[0,1,2]}}],
+        "nodes":[{{"mesh":0}},{{"mesh":1}},{}],
+        "meshes":[{{"primitives":[{floor}]}},{{"primitives":[{lamp}]}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.5,0.5,1],"metallicFactor":0}},"extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}},
+                     {{"name":"lamp","pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1],"metallicFactor":0}},
+                       "emissiveFactor":[1,1,1],"emissiveTexture":{{"index":0}},"doubleSided":true}}],
+        "samplers":[{{"wrapS":33071,"wrapT":33071,"magFilter":9728}}],
+        "textures":[{{"source":{img},"sampler":0}}]"#,
+        sun_light(0.0),
+        sun_node(PI / 4.0)
+    );
+    let gltf = g.finish(&body);
+    for method in ["direct", "brute-force"] {
+        let img = render(&job(dir.path(), "spot.gltf", gltf.clone(), method, 48), 0);
+        let lit = img.direct.iter().filter(|d| d[1] > 0.0).count();
+        eprintln!("{method}: {lit} pixels lit");
+        assert!(lit > 0, "{method}: no pixel lit by the emitter");
+    }
+}
