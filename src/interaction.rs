@@ -81,7 +81,13 @@ impl SurfacePoint {
             .materials
             .get(sh.material as usize)
             .and_then(|m| m.normal_texture)
-            .and_then(|map| normal_mapped(g, hit.triangle as usize, nv, uv, b, &map, surfaces));
+            .and_then(|map| {
+                // The frame is built around the vertex normal on the winding's side: vertex
+                // normals against the winding (a mirrored export) would otherwise give a
+                // mapped normal that the test below drops.
+                let nw = if nv.dot(n) < 0.0 { -nv } else { nv };
+                normal_mapped(g, hit.triangle as usize, nw, uv, b, &map, surfaces)
+            });
         // Oriented like `ng`; a mapped normal on the far side of the geometric one falls back
         // to the interpolated normal.
         let orient = |v: Vec3| if v.dot(ng) < 0.0 { -v } else { v };
