@@ -647,11 +647,15 @@ impl Job {
                 format!("must be 1..=16384 pixels each, got {width}x{height}"),
             ));
         }
-        if !(file.fps.is_finite() && file.fps > 0.0) {
+        // Frame times are f32 seconds: half a frame must be one.
+        if !(file.fps.is_finite() && file.fps > 0.0 && ((0.5 / file.fps) as f32).is_finite()) {
             return Err(Error::input(
                 path,
                 "fps",
-                format!("must be > 0, got {}", file.fps),
+                format!(
+                    "must be > 0 with half a frame's seconds finite in f32, got {:e}",
+                    file.fps
+                ),
             ));
         }
         if !file.frame_offset.is_finite() {

@@ -536,6 +536,13 @@ impl<'a> Reader<'a> {
                 "{at}: a metal of roughness {roughness}; {ROUGH_METAL}"
             ));
         }
+        let base = pbr.base_color_factor();
+        if !base.iter().all(|c| (0.0..=1.0).contains(c)) {
+            return Err(self.bad(
+                &format!("{at}.pbrMetallicRoughness.baseColorFactor"),
+                format!("{base:?} has a component outside [0, 1]"),
+            ));
+        }
         let emission = Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0);
         if !emission.is_finite() || emission.min_element() < 0.0 {
             return Err(self.bad(&at, "emission must be finite and non-negative"));
@@ -817,6 +824,20 @@ impl<'a> Reader<'a> {
             None => (0..positions.len() as u32).collect(),
         };
         self.check_indices(at, &raw, positions.len())?;
+        if mode == Mode::Triangles && !raw.len().is_multiple_of(3) {
+            let key = if p.indices().is_some() {
+                "indices"
+            } else {
+                "attributes.POSITION"
+            };
+            return Err(self.bad(
+                &format!("{at}.{key}"),
+                format!(
+                    "has {} elements, not a multiple of 3, for TRIANGLES",
+                    raw.len()
+                ),
+            ));
+        }
         let indices = triangulate(mode, &raw);
         let before = indices.len() / 3;
         let indices = drop_degenerate(&positions, indices);
@@ -837,6 +858,24 @@ impl<'a> Reader<'a> {
                 &format!("{at}.attributes.WEIGHTS_0"),
                 format!("vertex {v}'s weights {:?} are not finite", weights[v]),
             ));
+        }
+        // glTF 2.0 §3.7.3.1: a vertex's weights sum to 1. Weights summing to zero bind it to
+        // nothing (it collapsed to the origin); a sum off by more than rounding is divided out
+        // (weights of 0.5 in all pulled the vertex halfway to the origin), as other loaders do.
+        let mut weights = weights;
+        for (v, w) in weights.iter_mut().enumerate() {
+            let sum: f32 = w.iter().sum();
+            if !(sum > 0.0) {
+                return Err(self.bad(
+                    &format!("{at}.attributes.WEIGHTS_0"),
+                    format!("vertex {v}'s weights {w:?} sum to {sum}, not 1"),
+                ));
+            }
+            if (sum - 1.0).abs() > 1e-3 {
+                for x in w.iter_mut() {
+                    *x /= sum;
+                }
+            }
         }
         let targets = self.morph_targets(at, r.read_morph_targets(), positions.len())?;
         let local = p.material().index().and_then(|i| materials.get(i));
@@ -970,14 +1009,19 @@ impl<'a> Reader<'a> {
                     Some(m) => m.map(|c| Mat4::from_cols_array_2d(&c)).collect(),
                     None => vec![Mat4::IDENTITY; joints.len()],
                 };
+                let at = format!(
+                    "{}.inverseBindMatrices",
+                    name_of("skins", s.index(), s.name())
+                );
                 if let Some(k) = inverse_bind.iter().position(|m| !m.is_finite()) {
-                    return Err(self.bad(
-                        &format!(
-                            "{}.inverseBindMatrices",
-                            name_of("skins", s.index(), s.name())
-                        ),
-                        format!("matrix {k} is not finite"),
-                    ));
+                    return Err(self.bad(&at, format!("matrix {k} is not finite")));
+                }
+                // A singular one collapses every vertex bound to its joint into a point.
+                if let Some(k) = inverse_bind
+                    .iter()
+                    .position(|m| !(m.as_dmat4().determinant().abs() > 0.0))
+                {
+                    return Err(self.bad(&at, format!("matrix {k} is singular")));
                 }
                 Ok(Skin {
                     joints,

@@ -549,6 +549,14 @@ impl V<'_> {
     /// matrix that is finite, affine, and a rotation and a scale (each axis's squared length
     /// finite in f32, none zero, the axes at right angles), which is how it is read.
     fn transform(&self, at: &str, node: &json::Node) -> Result<()> {
+        if node.matrix.is_some()
+            && (node.translation.is_some() || node.rotation.is_some() || node.scale.is_some())
+        {
+            return Err(self.bad(
+                format!("{at}.matrix"),
+                "is given beside translation, rotation or scale; glTF allows one or the other",
+            ));
+        }
         if let Some(q) = &node.rotation {
             let q = q.0;
             if !q.iter().all(|c| c.is_finite()) || q.iter().all(|&c| c == 0.0) {
@@ -628,6 +636,27 @@ impl V<'_> {
             }
             if let Some(s) = node.skin {
                 self.index(&format!("{at}.skin"), s.value(), r.skins.len(), "skins")?;
+                if let Some(m) = node.mesh {
+                    for (p, prim) in r.meshes[m.value()].primitives.iter().enumerate() {
+                        for (semantic, key) in [
+                            (Semantic::Joints(0), "JOINTS_0"),
+                            (Semantic::Weights(0), "WEIGHTS_0"),
+                        ] {
+                            if !prim
+                                .attributes
+                                .keys()
+                                .any(|k| *k == Checked::Valid(semantic.clone()))
+                            {
+                                return Err(self.bad(
+                                    format!("meshes[{}].primitives[{p}].attributes", m.value()),
+                                    format!(
+                                        "has no {key}, which the skin of {at}, its node, needs"
+                                    ),
+                                ));
+                            }
+                        }
+                    }
+                }
             }
             if let Some(l) = node
                 .extensions
@@ -789,6 +818,15 @@ impl V<'_> {
                 )?;
                 let node = ch.target.node.value();
                 self.index(&format!("{cat}.target.node"), node, r.nodes.len(), "nodes")?;
+                if r.nodes[node].matrix.is_some() {
+                    return Err(self.bad(
+                        format!("{cat}.target.node"),
+                        format!(
+                            "nodes[{node}] has a matrix; an animated node must give \
+                             translation, rotation and scale instead (glTF 2.0 §3.11)"
+                        ),
+                    ));
+                }
                 let Checked::Valid(path) = ch.target.path else {
                     return Err(self.bad(
                         format!("{cat}.target.path"),

@@ -492,6 +492,27 @@ fn a_job_file_error_shows_where_once_and_the_text_around_it() {
     assert!(e.contains("unknown field `pad`") && e.len() < 400, "{e}");
 }
 
+/// A frame rate so low that half a frame's seconds overflow f32 is refused: the check that
+/// frames lie within the animation compared against an infinite slack and let any through.
+#[test]
+fn an_fps_too_low_for_f32_frame_times_is_refused() {
+    let dir = tempdir();
+    let p = dir.path().join("job.json");
+    let room = root().join("examples/room/room.gltf");
+    std::fs::write(
+        &p,
+        format!(
+            r#"{{"scene":[{{"path":{:?}}}],"fps":1e-39}}"#,
+            room.display().to_string()
+        ),
+    )
+    .unwrap();
+    let o = run(&["validate", p.to_str().unwrap()]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("fps") && e.contains("f32"), "{e}");
+}
+
 /// No output replaces an input: a job whose name is one of its own frames' stats, or a
 /// `compare` job written where its table goes, is refused before anything renders. A
 /// directory that cannot be made is found before any other is made, and `validate` makes

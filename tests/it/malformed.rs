@@ -924,3 +924,93 @@ fn texture_coordinates_are_present_and_finite_where_textures_read_them() {
     std::fs::write(dir.path().join("tri.bin"), bin).unwrap();
     assert_refused(&path, &["attributes.TEXCOORD_0", "vertex 0", "not finite"]);
 }
+
+/// More of what glTF requires, each of which rendered silently wrong: a vertex's skin
+/// weights sum to 1 (all zero collapsed it to the origin; a sum other than 1 is divided
+/// out, so weights of 0.5 give the mesh that weights of 1 give), inverse bind matrices are
+/// invertible, a skinned mesh has `JOINTS_0` and `WEIGHTS_0`, a node gives a matrix or TRS
+/// but not both, an animated node has no matrix (both were ignored), `baseColorFactor` lies
+/// in [0, 1] (it was clamped), and TRIANGLES come in threes (the rest was dropped).
+#[test]
+fn skins_matrices_colours_and_triangle_counts_are_as_gltf_requires() {
+    let (_dir, path) = skinned([0; 12], [0.0; 12], IDENTITY, |_| {});
+    assert_refused(&path, &["attributes.WEIGHTS_0", "vertex 0", "sum to 0"]);
+    let mut ibm = IDENTITY;
+    ibm[0] = 0.0;
+    let (_dir, path) = skinned([0; 12], ONE_JOINT, ibm, |_| {});
+    assert_refused(&path, &["skins[0].inverseBindMatrices", "singular"]);
+    let (_dir, path) = skinned([0; 12], ONE_JOINT, IDENTITY, |d| {
+        let attributes = &mut d["meshes"][0]["primitives"][0]["attributes"];
+        attributes.as_object_mut().unwrap().remove("WEIGHTS_0");
+    });
+    assert_refused(
+        &path,
+        &[
+            "meshes[0].primitives[0].attributes",
+            "WEIGHTS_0",
+            "nodes[0]",
+        ],
+    );
+    // Half weights and whole ones place the same triangle.
+    let triangles = |weights: [f32; 12]| {
+        let (dir, path) = skinned([0; 12], weights, IDENTITY, |d| {
+            d["nodes"][1]["translation"] = json!([0, 2, 0]);
+        });
+        let job = job_from_json(
+            &dir.path().join("j.json"),
+            &format!(
+                r#"{{"scene":[{{"path":{:?}}}],"camera":{{"position":[0,0,5],"look_at":[0,0,0],"yfov_deg":40}}}}"#,
+                path.display().to_string()
+            ),
+        )
+        .unwrap();
+        let scene = job.load_scene().unwrap();
+        let g = scene.geometry(0.0, anchorage::geom::Motion::Dynamic);
+        g.triangles
+            .iter()
+            .map(|t| [t.v0, t.v1, t.v2])
+            .collect::<Vec<_>>()
+    };
+    let half = ONE_JOINT.map(|w| w * 0.5);
+    let (whole, halved) = (triangles(ONE_JOINT), triangles(half));
+    assert!(!whole.is_empty());
+    assert_eq!(whole, halved);
+    refused_after(
+        |d| {
+            d["nodes"][1]["matrix"] = json!([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+            d["nodes"][1]["translation"] = json!([0, 1, 0]);
+        },
+        &["nodes[1].matrix", "translation, rotation or scale"],
+    );
+    refused_after(
+        |d| {
+            d["nodes"][0]["matrix"] = json!([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+        },
+        &[
+            "animations[0].channels[0].target.node",
+            "nodes[0] has a matrix",
+        ],
+    );
+    refused_after(
+        |d| {
+            d["materials"] = json!([{"pbrMetallicRoughness": {"baseColorFactor": [2, 1, 1, 1]}}]);
+            d["meshes"][0]["primitives"][0]["material"] = json!(0);
+        },
+        &[
+            "materials[0].pbrMetallicRoughness.baseColorFactor",
+            "outside [0, 1]",
+        ],
+    );
+    refused_after(
+        |d| {
+            // Two of the three vertices' indices (accessor 3's view holds two floats; as
+            // UNSIGNED_SHORT indices they read 0, 0, 0, 16256).
+            push(
+                &mut d["accessors"],
+                json!({"bufferView": 3, "componentType": 5123, "count": 2, "type": "SCALAR"}),
+            );
+            d["meshes"][0]["primitives"][0]["indices"] = json!(5);
+        },
+        &["meshes[0].primitives[0].indices", "not a multiple of 3"],
+    );
+}

@@ -472,10 +472,15 @@ fn tilted_texel() -> ([u8; 4], Vec3) {
 /// its tangent from the UVs (T = ∂p/∂u = +x, B = −∂p/∂v = −z), the right half has
 /// `TANGENT` (0, 0, 1, +1) (T = +z, B = N × T = +x). Sun from 30° towards +x.
 fn normal_mapped_scene(g: &mut Gltf) -> String {
+    normal_mapped_scene_with(g, 1.0)
+}
+
+/// [`normal_mapped_scene`] with the right half's `NORMAL` (0, `ny`, 0).
+fn normal_mapped_scene_with(g: &mut Gltf, ny: f32) -> String {
     let (c, uv) = flat_quad(0.0, [-3.0, 0.0], [-3.0, 3.0], true);
     let left = g.quad(c, uv, 0, "");
     let tangents = g.floats(&[0.0, 0.0, 1.0, 1.0].repeat(4), 4, "VEC4");
-    let normals = g.floats(&[0.0, 1.0, 0.0].repeat(4), 3, "VEC3");
+    let normals = g.floats(&[0.0, ny, 0.0].repeat(4), 3, "VEC3");
     let (c, uv) = flat_quad(0.0, [0.0, 3.0], [-3.0, 3.0], true);
     let right = g.quad(
         c,
@@ -532,6 +537,24 @@ fn normal_maps_tilt_the_direct_shading_as_the_closed_form_predicts() {
         );
     }
     assert!(checked.iter().all(|&n| n > 20), "{checked:?}");
+}
+
+/// Vertex normals against the winding (a mirrored export) take the normal map as normals
+/// along it do: the frame is built around the vertex normal turned to the winding's side.
+/// The map was dropped there, the floor shaded as if unmapped.
+#[test]
+fn a_normal_map_applies_where_vertex_normals_oppose_the_winding() {
+    let dir = tempdir();
+    let image = |ny: f32| {
+        let mut g = Gltf::default();
+        let body = normal_mapped_scene_with(&mut g, ny);
+        render(
+            &job(dir.path(), "normals.gltf", g.finish(&body), "direct", 32),
+            0,
+        )
+    };
+    let (along, against) = (image(1.0), image(-1.0));
+    assert!(along.beauty == against.beauty, "the images differ");
 }
 
 /// The mapped normal shades, the geometric normal still offsets rays: at a hit on the
