@@ -81,24 +81,15 @@ impl SurfacePoint {
             .materials
             .get(sh.material as usize)
             .and_then(|m| m.normal_texture)
-            .and_then(|map| {
-                // The frame is built around the vertex normal on the winding's side: vertex
-                // normals against the winding (a mirrored export) would otherwise give a
-                // mapped normal that the test below drops.
-                let nw = if nv.dot(n) < 0.0 { -nv } else { nv };
-                normal_mapped(g, hit.triangle as usize, nw, uv, b, &map, surfaces)
-            });
-        // Oriented like `ng`; a mapped normal on the far side of the geometric one falls back
-        // to the interpolated normal.
-        let orient = |v: Vec3| if v.dot(ng) < 0.0 { -v } else { v };
-        let ns = match mapped {
-            Some(m) if (if front { m } else { -m }).dot(ng) > 0.0 => {
-                if front {
-                    m
-                } else {
-                    -m
-                }
-            }
+            .and_then(|map| normal_mapped(g, hit.triangle as usize, nv, uv, b, &map, surfaces));
+        // Oriented like `ng`, as the vertex normal is (glTF's frame is the file's normal's,
+        // so where vertex normals oppose the winding the mapped normal is turned with
+        // them); a mapped normal on the far side of the geometric one falls back to the
+        // interpolated normal.
+        let flip = nv.dot(ng) < 0.0;
+        let orient = |v: Vec3| if flip { -v } else { v };
+        let ns = match mapped.map(orient) {
+            Some(m) if m.dot(ng) > 0.0 => m,
             _ => orient(nv),
         };
         SurfacePoint {

@@ -996,7 +996,11 @@ fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> Error {
         .unwrap_or(&message);
     let full = text.lines().nth(line.saturating_sub(1)).unwrap_or("");
     let chars: Vec<char> = full.chars().collect();
-    let at = column.saturating_sub(1).min(chars.len());
+    // serde_json counts the column in bytes.
+    let at = full
+        .char_indices()
+        .take_while(|&(byte, _)| byte < column.saturating_sub(1))
+        .count();
     let (from, to) = (
         at.saturating_sub(EXCERPT_CHARS),
         (at + EXCERPT_CHARS).min(chars.len()),

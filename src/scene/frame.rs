@@ -358,8 +358,10 @@ impl PunctualLight {
     /// The light points along the node's −Z axis as `world` maps it, which a non-uniform
     /// scale above a rotated node turns (a decomposition into a rotation would not);
     /// [`crate::scene::Scene::check_lights`] refuses a node that maps it to zero. Range and
-    /// intensity do not change with the node's scale (`KHR_lights_punctual`).
-    pub fn new(l: &Light, world: DMat4, origin: DVec3) -> Self {
+    /// intensity do not change with the node's scale (`KHR_lights_punctual`); the range is
+    /// in the file's units, which the job's layer transform scales by `units` (the cube root
+    /// of its determinant).
+    pub fn new(l: &Light, world: DMat4, origin: DVec3, units: f32) -> Self {
         PunctualLight {
             kind: l.kind,
             position: (world.w_axis.truncate() - origin).as_vec3(),
@@ -368,7 +370,7 @@ impl PunctualLight {
                 .normalize_or_zero()
                 .as_vec3(),
             intensity: l.color * l.intensity,
-            range: l.range,
+            range: l.range.map(|r| r * units),
         }
     }
 }

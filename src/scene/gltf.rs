@@ -859,12 +859,24 @@ impl<'a> Reader<'a> {
                 format!("vertex {v}'s weights {:?} are not finite", weights[v]),
             ));
         }
-        // glTF 2.0 §3.7.3.1: a vertex's weights sum to 1. Weights summing to zero bind it to
-        // nothing (it collapsed to the origin); a sum off by more than rounding is divided out
-        // (weights of 0.5 in all pulled the vertex halfway to the origin), as other loaders do.
+        // glTF 2.0 §3.7.3.1: a vertex's weights sum to 1. Weights of a vertex a triangle uses
+        // summing to zero bind it to nothing (it collapsed to the origin); a sum off by more
+        // than rounding is divided out (weights of 0.5 in all pulled the vertex halfway to
+        // the origin), as other loaders do.
+        // With a second set (`WEIGHTS_1`, not read) the first sums to less than 1 by design.
+        let second_set = r.read_weights(1).is_some();
+        let mut used = vec![false; weights.len()];
+        for &i in &raw {
+            if let Some(u) = used.get_mut(i as usize) {
+                *u = true;
+            }
+        }
         let mut weights = weights;
         for (v, w) in weights.iter_mut().enumerate() {
             let sum: f32 = w.iter().sum();
+            if second_set || !used[v] {
+                continue;
+            }
             if !(sum > 0.0) {
                 return Err(self.bad(
                     &format!("{at}.attributes.WEIGHTS_0"),

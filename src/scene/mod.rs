@@ -1081,9 +1081,17 @@ impl Scene {
         let mut out = Vec::new();
         for layer in &self.layers {
             let world = layer.world_matrices_f64(t);
+            // The job's layer transform converts the file's units; a node's scale does not
+            // change its light's range (`KHR_lights_punctual`), the layer's does.
+            let units = layer.transform.determinant().abs().cbrt() as f32;
             for (i, node) in layer.nodes.iter().enumerate() {
                 if let Some(l) = node.light {
-                    out.push(PunctualLight::new(&layer.lights[l], world[i], origin));
+                    out.push(PunctualLight::new(
+                        &layer.lights[l],
+                        world[i],
+                        origin,
+                        units,
+                    ));
                 }
             }
         }

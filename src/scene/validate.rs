@@ -559,7 +559,10 @@ impl V<'_> {
         }
         if let Some(q) = &node.rotation {
             let q = q.0;
-            if !q.iter().all(|c| c.is_finite()) || q.iter().all(|&c| c == 0.0) {
+            let length = q.iter().map(|&c| f64::from(c).powi(2)).sum::<f64>().sqrt();
+            // glTF's is a unit quaternion; one far from it (zero, or small or large enough to
+            // underflow or overflow when normalised in f32) is not a rotation.
+            if !(1e-3..=1e3).contains(&length) {
                 return Err(self.bad(
                     format!("{at}.rotation"),
                     format!("{q:?} is not a rotation (a unit quaternion)"),
@@ -571,7 +574,10 @@ impl V<'_> {
         };
         let why = if !m.iter().all(|c| c.is_finite()) {
             Some("is not finite")
-        } else if m[3] != 0.0 || m[7] != 0.0 || m[11] != 0.0 || m[15] != 1.0 {
+        } else if [m[3], m[7], m[11], m[15] - 1.0]
+            .iter()
+            .any(|c| c.abs() > 1e-5)
+        {
             Some("is not affine (its last row must be 0, 0, 0, 1)")
         } else {
             let axes: Vec<[f64; 3]> = (0..3)
@@ -579,7 +585,10 @@ impl V<'_> {
                 .collect();
             let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
             let len2: Vec<f64> = axes.iter().map(|a| dot(a, a)).collect();
-            if len2.contains(&0.0) {
+            if len2.iter().all(|&l| l == 0.0) {
+                // Scaled to nothing, a common way to hide a node: nothing of it is rendered.
+                None
+            } else if len2.contains(&0.0) {
                 Some(
                     "scales an axis to zero: give such a transform as translation, rotation and scale",
                 )
@@ -818,7 +827,9 @@ impl V<'_> {
                 )?;
                 let node = ch.target.node.value();
                 self.index(&format!("{cat}.target.node"), node, r.nodes.len(), "nodes")?;
-                if r.nodes[node].matrix.is_some() {
+                if r.nodes[node].matrix.is_some()
+                    && ch.target.path != Checked::Valid(Property::MorphTargetWeights)
+                {
                     return Err(self.bad(
                         format!("{cat}.target.node"),
                         format!(

@@ -765,12 +765,22 @@ fn node_transforms_gltf_cannot_give_are_refused() {
             &["nodes[1].matrix", why],
         );
     }
-    // A rotation and a mirroring scale as a matrix load.
-    let dir = tempdir();
-    let mut doc = triangle();
-    doc["nodes"][1]["matrix"] = json!([0, 1, 0, 0, -2, 0, 0, 0, 0, 0, -1, 0, 5, 0, 0, 1]);
-    let (code, err) = inspect(&write(dir.path(), &doc));
-    assert_eq!(code, Some(0), "{err}");
+    refused_after(
+        |d| d["nodes"][1]["rotation"] = json!([1e-25, 0, 0, 1e-25]),
+        &["nodes[1].rotation", "not a rotation"],
+    );
+    // A rotation and a mirroring scale as a matrix load, with a last row a tool's float
+    // noise leaves, and so does a matrix that scales a node to nothing (hiding it).
+    for matrix in [
+        json!([0, 1, 0, 1e-9, -2, 0, 0, 0, 0, 0, -1, 0, 5, 0, 0, 0.9999999]),
+        json!([0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1]),
+    ] {
+        let dir = tempdir();
+        let mut doc = triangle();
+        doc["nodes"][1]["matrix"] = matrix;
+        let (code, err) = inspect(&write(dir.path(), &doc));
+        assert_eq!(code, Some(0), "{err}");
+    }
 }
 
 /// Animation samplers have keys (an empty one moved its node to the origin), rotation keys
@@ -991,6 +1001,15 @@ fn skins_matrices_colours_and_triangle_counts_are_as_gltf_requires() {
             "nodes[0] has a matrix",
         ],
     );
+    // Morph weights animate no transform: a node with a matrix may have them animated.
+    let dir = tempdir();
+    let mut doc = triangle();
+    doc["meshes"][0]["primitives"][0]["targets"] = json!([{"POSITION": 1}]);
+    doc["nodes"][0]["matrix"] = json!([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+    doc["animations"][0]["samplers"] = json!([{"input": 3, "output": 3}]);
+    doc["animations"][0]["channels"][0]["target"]["path"] = json!("weights");
+    let (code, err) = inspect(&write(dir.path(), &doc));
+    assert_eq!(code, Some(0), "{err}");
     refused_after(
         |d| {
             d["materials"] = json!([{"pbrMetallicRoughness": {"baseColorFactor": [2, 1, 1, 1]}}]);

@@ -539,22 +539,37 @@ fn normal_maps_tilt_the_direct_shading_as_the_closed_form_predicts() {
     assert!(checked.iter().all(|&n| n > 20), "{checked:?}");
 }
 
-/// Vertex normals against the winding (a mirrored export) take the normal map as normals
-/// along it do: the frame is built around the vertex normal turned to the winding's side.
-/// The map was dropped there, the floor shaded as if unmapped.
+/// Vertex normals against the winding (a mirrored export) keep their normal map: glTF builds
+/// the frame from the file's normal N = −y (B = N × T = −x for `TANGENT` +z), and the mapped
+/// normal is turned with N to the viewer's side, −(T·x + B·y + N·z). The map was dropped
+/// there, the floor shaded as if unmapped.
 #[test]
 fn a_normal_map_applies_where_vertex_normals_oppose_the_winding() {
     let dir = tempdir();
-    let image = |ny: f32| {
-        let mut g = Gltf::default();
-        let body = normal_mapped_scene_with(&mut g, ny);
-        render(
-            &job(dir.path(), "normals.gltf", g.finish(&body), "direct", 32),
-            0,
-        )
-    };
-    let (along, against) = (image(1.0), image(-1.0));
-    assert!(along.beauty == against.beauty, "the images differ");
+    let mut g = Gltf::default();
+    let body = normal_mapped_scene_with(&mut g, -1.0);
+    let size = 32;
+    let job = job(dir.path(), "normals.gltf", g.finish(&body), "direct", size);
+    let img = render(&job, 0);
+    let (_, n) = tilted_texel();
+    let wi = Vec3::new((PI / 6.0).sin(), (PI / 6.0).cos(), 0.0);
+    let against = (-Vec3::Z * n.x + Vec3::X * n.y + Vec3::Y * n.z).normalize();
+    let radiance = |ns: Vec3| 0.5 / PI * 2.0 * ns.dot(wi);
+    let flat = radiance(Vec3::Y);
+    assert!((radiance(against) / flat - 1.0).abs() > 0.1);
+    let mut checked = 0;
+    for (i, _, p) in pixels(&job, size) {
+        if p.z.abs() > 2.8 || p.x < 0.2 || p.x > 2.8 {
+            continue;
+        }
+        checked += 1;
+        let (got, want) = (img.beauty[i][0], radiance(against));
+        assert!(
+            close(got, want, 0.005),
+            "pixel {i} at {p}: {got}, want {want} (unmapped {flat})"
+        );
+    }
+    assert!(checked > 20, "{checked}");
 }
 
 /// The mapped normal shades, the geometric normal still offsets rays: at a hit on the

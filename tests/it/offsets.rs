@@ -455,11 +455,17 @@ fn a_scene_too_far_from_the_origin_for_its_size_is_refused() {
 /// and 2, so a third is 2's child)
 /// and its light by `light`, rendered by the direct method from the usual camera.
 fn ground_lit(dir: &std::path::Path, nodes: &str, light: &str) -> FrameImage {
-    ground_lit_by(dir, nodes, light, "direct")
+    ground_lit_by(dir, nodes, light, "direct", 1.0)
 }
 
-/// [`ground_lit`] by `method`.
-fn ground_lit_by(dir: &std::path::Path, nodes: &str, light: &str, method: &str) -> FrameImage {
+/// [`ground_lit`] by `method`, its layer scaled by `scale` (the camera with it).
+fn ground_lit_by(
+    dir: &std::path::Path,
+    nodes: &str,
+    light: &str,
+    method: &str,
+    scale: f32,
+) -> FrameImage {
     let gltf = ground_gltf(10.0)
         .replace(r#"{"type":"point","intensity":40}"#, light)
         .replace(
@@ -468,12 +474,17 @@ fn ground_lit_by(dir: &std::path::Path, nodes: &str, light: &str, method: &str) 
         );
     assert!(gltf.contains(nodes) && gltf.contains(light));
     std::fs::write(dir.join("lit.gltf"), gltf).unwrap();
+    let (p, l) = (
+        [1.2, 2.2, 2.6].map(|c| c * scale),
+        [0.0, 0.1, 0.0].map(|c| c * scale),
+    );
     let job = job_from_json(
         &dir.join("j.json"),
-        &r#"{"scene":[{"path":"lit.gltf"}],
-        "camera":{"position":[1.2,2.2,2.6],"look_at":[0,0.1,0],"yfov_deg":50},
-        "resolution":[32,24],"method":{"name":"METHOD"},"render":{"samples_per_pixel":4}}"#
-            .replace("METHOD", method),
+        &format!(
+            r#"{{"scene":[{{"path":"lit.gltf","transform":{{"scale":{scale}}}}}],
+            "camera":{{"position":{p:?},"look_at":{l:?},"yfov_deg":50}},
+            "resolution":[32,24],"method":{{"name":"{method}"}},"render":{{"samples_per_pixel":4}}}}"#
+        ),
     )
     .unwrap();
     render(&job, 0)
@@ -484,7 +495,7 @@ fn mean_direct(img: &FrameImage) -> f64 {
 }
 
 /// `KHR_lights_punctual`: a light's range does not change with its node's scale (it was
-/// multiplied by it), and a light points along its node's −Z axis as the node's world matrix
+/// multiplied by it) but follows the job's layer transform, which converts units, and a light points along its node's −Z axis as the node's world matrix
 /// maps it, which a non-uniform scale above a rotated node turns (the rotation taken from
 /// the matrix's decomposition lit the ground 0.80 times as brightly).
 #[test]
@@ -523,11 +534,16 @@ fn light_range_ignores_node_scale_and_direction_follows_the_world_matrix() {
         ),
         sun,
     );
+    // The range is in the file's units, which the job's layer transform scales: at half
+    // size the light is 1 above the ground, within a range of 3 (1.5), beyond one of 1.5.
+    let light = r#"{"name":"light","translation":[-0.6,2,-0.2],"extensions":{"KHR_lights_punctual":{"light":0}}}"#;
+    let half = |range: f32| ground_lit_by(dir.path(), light, &point(range), "direct", 0.5);
+    assert!(mean_direct(&half(3.0)) > 0.01);
+    assert_eq!(mean_direct(&half(1.5)), 0.0);
     // Photons stop at the range too: nothing within 1 of the light, no light at all (the
     // photon methods' indirect light ignored the range).
-    let light = r#"{"name":"light","translation":[-0.6,2,-0.2],"extensions":{"KHR_lights_punctual":{"light":0}}}"#;
     for method in ["brute-force", "anchors"] {
-        let img = ground_lit_by(dir.path(), light, &point(1.0), method);
+        let img = ground_lit_by(dir.path(), light, &point(1.0), method, 1.0);
         let lit = |aov: &[[f32; 3]]| aov.iter().flatten().filter(|&&v| v != 0.0).count();
         assert_eq!((lit(&img.direct), lit(&img.indirect)), (0, 0), "{method}");
     }
