@@ -388,7 +388,7 @@ pub struct Emitter {
     /// Its radiance varies over it (its material has an emissive texture, or an alpha
     /// cut-out, whose removed parts emit nothing): the radiance at a point is
     /// [`FrameScene::emitted_radiance`], not [`Emitter::radiance`].
-    pub textured: bool,
+    pub varies: bool,
 }
 
 /// Samples per side of the stratified grid over which a textured or cut-out emitter's
@@ -472,7 +472,7 @@ impl Emitters {
                     area: area as f32,
                     radiance,
                     double_sided: m.double_sided,
-                    textured: varies,
+                    varies,
                 });
             }
         }
@@ -564,7 +564,7 @@ impl FrameScene {
     /// Radiance emitter `e` emits at barycentrics `b` of its triangle (the emissive texture
     /// read there, when it has one).
     pub fn emitted_radiance(&self, e: &Emitter, b: Vec2) -> Vec3 {
-        if !e.textured {
+        if !e.varies {
             return e.radiance;
         }
         let g = self.geometry(e.motion);

@@ -304,6 +304,15 @@ impl Layer {
         }
     }
 
+    /// A node as an element of its glTF, for errors and warnings: `nodes[i]`, with its name
+    /// where it has one (`nodes[i] "Name"`).
+    pub fn node_element(&self, i: usize) -> String {
+        match self.nodes[i].name.as_str() {
+            "" => format!("nodes[{i}]"),
+            name => format!("nodes[{i}] \"{name}\""),
+        }
+    }
+
     /// The node a job file names, among those `accept`s: by its name, or as `nodes[i]` (for
     /// unnamed nodes, as `inspect` prints them) when no node has that name. An error text
     /// when there is none, or when several share the name.
@@ -370,10 +379,7 @@ impl Layer {
         let mut names: Vec<String> = left_out
             .iter()
             .take(LISTED)
-            .map(|&i| match self.nodes[i].name.as_str() {
-                "" => format!("nodes[{i}]"),
-                name => format!("nodes[{i}] \"{name}\""),
-            })
+            .map(|&i| self.node_element(i))
             .collect();
         if left_out.len() > LISTED {
             names.push(format!("{} more", left_out.len() - LISTED));
@@ -470,10 +476,7 @@ impl Layer {
         let mut warnings = Vec::new();
         for ((node, prop), clips) in &fights {
             let prop = ["translation", "rotation", "scale", "weights"][*prop as usize];
-            let node = match self.nodes[*node].name.as_str() {
-                "" => format!("nodes[{node}]"),
-                name => format!("nodes[{node}] \"{name}\""),
-            };
+            let node = self.node_element(*node);
             warnings.push(format!(
                 "{}: animations {} all drive the {prop} of {node}; only \"{}\" (first in the \
                  file) plays there: choose clips with scene[{layer}].animations",
@@ -893,13 +896,9 @@ impl Scene {
             if let Some(why) =
                 FrameCamera::placement_error(l.world_matrix_f64(node, t, &anim), clip)
             {
-                let at = match l.nodes[node].name.as_str() {
-                    "" => format!("nodes[{node}]"),
-                    name => format!("nodes[{node}] \"{name}\""),
-                };
                 return Err(Error::input(
                     &l.path,
-                    at,
+                    l.node_element(node),
                     format!("at frame {frame} (t = {t:.4} s): {why}"),
                 ));
             }
@@ -926,13 +925,9 @@ impl Scene {
                     if d.length() > 0.0 && d.is_finite() {
                         continue;
                     }
-                    let at = match n.name.as_str() {
-                        "" => format!("nodes[{node}]"),
-                        name => format!("nodes[{node}] \"{name}\""),
-                    };
                     return Err(Error::input(
                         &l.path,
-                        at,
+                        l.node_element(node),
                         format!(
                             "at frame {frame} (t = {t:.4} s) this spot or directional light's \
                              node scales its −Z axis, the way the light points, to {d}: it would \
